@@ -1,0 +1,1 @@
+"""Command-line tools: experiments, benchmark, main job, fault report."""
