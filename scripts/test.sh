@@ -11,11 +11,13 @@ export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-$(( (RANDOM % 100) + 100 ))}"
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 export PYTHONUNBUFFERED=1
 echo "[test] colcon test (ROS_DOMAIN_ID=$ROS_DOMAIN_ID)"
+extra=()
+[ "$#" -gt 0 ] && extra=(--pytest-args "$@")
 rc=0
 colcon --log-base .colcon/log test --base-paths "$repo" \
   --build-base .colcon/build --install-base .colcon/install \
   --test-result-base .colcon/test_results \
   --event-handlers console_direct+ \
-  --pytest-args "$@" || rc=$?
+  "${extra[@]}" || rc=$?
 colcon test-result --test-result-base .colcon/test_results --verbose || rc=$?
 exit "$rc"

@@ -1,0 +1,233 @@
+"""
+One control tick of the paper's loop (Sec. V-A): estimate, control, actuate.
+
+``BalanceCore`` is what balance_node, the closed-loop simulation, the experiments and the
+benchmark all run, so the code that is proven in simulation is the code on the robot.
+
+Per tick (2 ms):
+
+1. wheel odometry: x_dot = r_w ((w_l + w_r)/2 + theta_dot), x_k = x_{k-1} + T_s x_dot_{k-1},
+   yaw rate = r_w (w_r - w_l) / d_w  (core/estimation.py);
+2. the Luenberger observer (8) on [theta~, theta_dot, x, x_dot, d] runs whatever controller is
+   selected, so d_hat is always warm and a controller switch hands over the estimator state
+   (core/observer.py);
+3. the selected controller gives the force u [N] (core/output_regulation.py, core/ida_pbc.py);
+   a switch is bumpless: the jump between the old and the new controller's u is blended out
+   linearly over ``switch_blend_time``;
+4. u becomes two wheel torques with the yaw-rate loop, saturated so balance comes before yaw
+   (core/actuation.py). The force actually applied feeds the observer at the next tick.
+"""
+from dataclasses import dataclass, field
+import math
+from typing import Optional
+
+import numpy as np
+
+from .actuation import wheel_torques
+from .controller_base import ControlInput
+from .estimation import WheelOdometry
+from .ida_pbc import IdaPbcController
+from .lqr import GainSchedule
+from .observer import DisturbanceObserver
+from .output_regulation import LqrController, OutputRegulationController
+from .params import CONTROL_PERIOD, IdaPbcGains, RobotParams
+
+#: Names accepted by ``BalanceCore.select`` and the node's ``controller`` parameter.
+CONTROLLER_NAMES = ('ida_pbc', 'output_regulation', 'lqr')
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """
+    Sensor readings of one tick.
+
+    theta_meas: IMU pitch theta~ = theta + d [rad]; theta_dot: IMU pitch rate [rad/s];
+    wheel_vel_left / wheel_vel_right: wheel angular velocity relative to the leg, forward
+    positive [rad/s]; l: height of the body above the wheel axle [m].
+    """
+
+    theta_meas: float
+    theta_dot: float
+    wheel_vel_left: float
+    wheel_vel_right: float
+    l: float
+
+
+@dataclass(frozen=True)
+class Reference:
+    """References from the operator: x_dot* [m/s] and yaw rate* [rad/s, positive turns left]."""
+
+    x_dot_ref: float = 0.0
+    yaw_rate_ref: float = 0.0
+
+
+@dataclass
+class CoreConfig:
+    """
+    Tuning of the control core.
+
+    controller: initial controller, one of CONTROLLER_NAMES.
+    ida_pbc: IDA-PBC parameters (Table I by default).
+    compensate_offset: IDA-PBC uses theta~ - d_hat (removes the velocity bias an IMU offset
+    causes; the paper leaves the offset in).
+    d_hat0: initial estimate of the IMU pitch offset d [rad].
+    yaw_rate_gain: Sec. V-A yaw torque gain [N m s/rad] (tau_gamma = gain (yaw rate - yaw rate*)).
+    max_wheel_torque: per-wheel torque limit [N m].
+    switch_blend_time: time over which a controller switch blends out the jump in u [s].
+    lqr_Q, lqr_R: LQR weights (None: core/lqr.py defaults).
+    """
+
+    controller: str = 'ida_pbc'
+    ida_pbc: IdaPbcGains = field(default_factory=IdaPbcGains)
+    compensate_offset: bool = True
+    d_hat0: float = 0.0
+    yaw_rate_gain: float = 0.3
+    max_wheel_torque: float = 12.0
+    switch_blend_time: float = 0.1
+    lqr_Q: Optional[np.ndarray] = None
+    lqr_R: Optional[np.ndarray] = None
+
+
+@dataclass(frozen=True)
+class TickOutput:
+    """
+    Result of one tick.
+
+    tau_left / tau_right: wheel torques [N m], forward positive, before motor directions.
+    u: force actually applied [N] (after saturation); u_cmd: force the controller asked for [N].
+    theta: measured pitch [rad]; theta_dot [rad/s]; x [m]; x_dot [m/s]; yaw_rate [rad/s];
+    d_hat: IMU offset estimate [rad]; l: height used [m]; controller: name of the active one;
+    saturated: True when a torque limit cut the command.
+    """
+
+    tau_left: float
+    tau_right: float
+    u: float
+    u_cmd: float
+    theta: float
+    theta_dot: float
+    x: float
+    x_dot: float
+    yaw_rate: float
+    d_hat: float
+    l: float
+    controller: str
+    saturated: bool
+
+
+class BalanceCore:
+    """The control tick shared by balance_node, the simulation and the benchmark."""
+
+    def __init__(self, p: RobotParams = RobotParams(), config: Optional[CoreConfig] = None,
+                 dt: float = CONTROL_PERIOD):
+        self.p = p
+        self.config = config if config is not None else CoreConfig()
+        if self.config.controller not in CONTROLLER_NAMES:
+            raise ValueError('unknown controller %r (one of %s)'
+                             % (self.config.controller, ', '.join(CONTROLLER_NAMES)))
+        self.dt = dt
+        self.schedule = GainSchedule(p, self.config.lqr_Q, self.config.lqr_R)
+        self.controllers = {
+            'ida_pbc': IdaPbcController(p, self.config.ida_pbc, self.config.compensate_offset),
+            'output_regulation': OutputRegulationController(p, self.schedule),
+            'lqr': LqrController(p, self.schedule),
+        }
+        self.observer = DisturbanceObserver(p, dt)
+        self.odometry = WheelOdometry(p)
+        self._active = self.config.controller
+        self._requested: Optional[str] = None
+        self._input = ControlInput(l=p.height_min)
+        self._u_applied = 0.0
+        self._u_cmd = 0.0
+        self._blend_offset = 0.0
+        self._blend_step = 0.0
+
+    @property
+    def active_controller(self) -> str:
+        """Name of the controller that computed the last tick."""
+        return self._active
+
+    def select(self, name: str) -> None:
+        """Switch to controller ``name`` at the next tick (bumpless). Raises ValueError."""
+        if name not in CONTROLLER_NAMES:
+            raise ValueError('unknown controller %r (one of %s)'
+                             % (name, ', '.join(CONTROLLER_NAMES)))
+        if name != self._active:
+            self._requested = name
+
+    def set_ida_pbc_gains(self, gains: IdaPbcGains) -> None:
+        """Replace the IDA-PBC parameters (k, m22_0, k_v, P); applies from the next tick."""
+        self.config.ida_pbc = gains
+        self.controllers['ida_pbc'] = IdaPbcController(
+            self.p, gains, self.config.compensate_offset)
+
+    def reset(self, meas: Measurement) -> None:
+        """Start balancing from ``meas`` (on arm): x = 0, observer at the measured pitch."""
+        self.odometry.reset()
+        theta_dot = meas.theta_dot if math.isfinite(meas.theta_dot) else 0.0
+        self.observer.reset(np.array([meas.theta_meas, theta_dot, 0.0, 0.0, self.config.d_hat0]))
+        self._u_applied = 0.0
+        self._u_cmd = 0.0
+        self._blend_offset = 0.0
+        self._blend_step = 0.0
+        if self._requested is not None:
+            self._active, self._requested = self._requested, None
+        s = self._fill_input(meas, Reference(), 0.0, 0.0, self.observer.xi_hat)
+        for controller in self.controllers.values():
+            controller.reset(s)
+
+    def _fill_input(self, meas, ref, x, x_dot, xi_hat) -> ControlInput:
+        s = self._input
+        s.theta = meas.theta_meas
+        s.theta_dot = meas.theta_dot
+        s.x = x
+        s.x_dot = x_dot
+        s.l = self.p.clamp_height(meas.l)
+        s.x_dot_ref = ref.x_dot_ref
+        s.xi_hat = xi_hat
+        return s
+
+    def step(self, meas: Measurement, ref: Reference, dt: Optional[float] = None) -> TickOutput:
+        """Run one tick: returns the wheel torques to send and the estimated state."""
+        dt = self.dt if dt is None else dt
+        x, x_dot, yaw_rate = self.odometry.update(
+            meas.wheel_vel_left, meas.wheel_vel_right, meas.theta_dot, dt)
+        l = self.p.clamp_height(meas.l)
+        xi_hat = self.observer.update(meas.theta_meas, x, self._u_applied, l)
+        s = self._fill_input(meas, ref, x, x_dot, xi_hat)
+
+        if self._requested is not None:
+            # Bumpless transfer: the new controller starts from the current estimate, and the
+            # difference to the last command fades out instead of stepping the torque.
+            new = self.controllers[self._requested]
+            new.reset(s)
+            u_new = new.compute(s)
+            self._active, self._requested = self._requested, None
+            jump = self._u_cmd - u_new if math.isfinite(u_new) else 0.0
+            ticks = max(1, int(round(self.config.switch_blend_time / dt)))
+            self._blend_offset = jump
+            self._blend_step = jump / ticks
+            u_cmd = u_new
+        else:
+            u_cmd = self.controllers[self._active].compute(s)
+
+        if self._blend_offset != 0.0:
+            u_cmd += self._blend_offset
+            if abs(self._blend_offset) <= abs(self._blend_step):
+                self._blend_offset = 0.0
+            else:
+                self._blend_offset -= self._blend_step
+        if not math.isfinite(u_cmd):
+            u_cmd = 0.0  # never pass a non-finite command on; the supervisor sees theta itself
+        self._u_cmd = u_cmd
+
+        tau_left, tau_right, saturated = wheel_torques(
+            u_cmd, yaw_rate, ref.yaw_rate_ref, self.p,
+            self.config.yaw_rate_gain, self.config.max_wheel_torque)
+        # The force really applied (after the torque limit) is what the observer must see.
+        self._u_applied = (tau_left + tau_right) / self.p.wheel_radius
+        return TickOutput(
+            tau_left=tau_left, tau_right=tau_right, u=self._u_applied, u_cmd=u_cmd,
+            theta=meas.theta_meas, theta_dot=meas.theta_dot, x=x, x_dot=x_dot,
+            yaw_rate=yaw_rate, d_hat=float(xi_hat[4]), l=l, controller=self._active,
+            saturated=saturated)
