@@ -1,0 +1,77 @@
+"""
+From the force u to the two wheel torques, and from wheel to motor directions (paper Sec. V-A).
+
+Sec. V-A: each wheel gets tau = r_w u / 2 (so the two together push with u), and the yaw torque
+tau_gamma = gain (yaw_rate - yaw_rate*) is added to the left wheel and subtracted from the right.
+That is a negative feedback on the yaw rate: turning left faster than asked (yaw_rate > yaw_rate*)
+speeds the left wheel up and slows the right one, which turns the robot right. The pair sums to
+r_w u whatever tau_gamma is, so yaw does not disturb balance -- until a wheel hits its torque
+limit. Then balance comes first: the common torque is clipped to +-max, and tau_gamma only gets
+the headroom that is left, so the two wheels still sum to the (clipped) balance torque and the
+turn is what gives way.
+"""
+import math
+from typing import Tuple
+
+from .params import RobotParams
+
+
+def wheel_torques(u: float, yaw_rate: float, yaw_rate_ref: float, p: RobotParams,
+                  yaw_rate_gain: float = 0.3,
+                  max_torque: float = 12.0) -> Tuple[float, float, bool]:
+    """
+    Wheel torques (tau_left, tau_right, saturated) for force u (Sec. V-A).
+
+    u: force on the cart [N], forward positive; yaw_rate, yaw_rate_ref: measured and wanted yaw
+    rate [rad/s], positive turns left; yaw_rate_gain [N m s/rad]; max_torque: per-wheel limit
+    [N m]. Returns wheel torques [N m], forward positive, before motor directions, and whether
+    a limit cut the command. The outputs are always finite and within +-max_torque: a NaN term
+    counts as zero, and a max_torque that is not a positive finite number means zero torque.
+    """
+    limit = max_torque if 0.0 < max_torque < math.inf else 0.0  # NaN fails the comparison
+    saturated = False
+    tau = 0.5 * p.wheel_radius * u
+    if tau != tau:  # NaN
+        tau = 0.0
+    if tau > limit:
+        tau, saturated = limit, True
+    elif tau < -limit:
+        tau, saturated = -limit, True
+    tau_gamma = yaw_rate_gain * (yaw_rate - yaw_rate_ref)
+    if tau_gamma != tau_gamma:
+        tau_gamma = 0.0
+    headroom = limit - abs(tau)
+    if tau_gamma > headroom:
+        tau_gamma, saturated = headroom, True
+    elif tau_gamma < -headroom:
+        tau_gamma, saturated = -headroom, True
+    # The final clip only removes floating-point rounding (|tau| + headroom == limit).
+    tau_left = min(limit, max(-limit, tau + tau_gamma))
+    tau_right = min(limit, max(-limit, tau - tau_gamma))
+    return tau_left, tau_right, saturated
+
+
+def check_direction(direction: int) -> int:
+    """Return a motor mounting direction (+1 or -1) as int; raise ValueError for other values."""
+    if direction not in (1, -1):
+        raise ValueError('motor direction must be 1 or -1, not %r' % (direction,))
+    return int(direction)
+
+
+def motor_torque(wheel_torque: float, direction: int) -> float:
+    """
+    Motor torque [N m] that gives ``wheel_torque`` (forward positive) on the wheel.
+
+    direction is +1 when the motor's positive rotation drives the wheel forward, -1 when the
+    motor is mounted mirrored (typically one side of the robot).
+    """
+    return direction * wheel_torque
+
+
+def wheel_velocity(motor_velocity: float, direction: int) -> float:
+    """
+    Wheel angular velocity [rad/s], forward positive, from the motor's velocity.
+
+    direction as for motor_torque; the same mapping turns a motor position into a wheel angle.
+    """
+    return direction * motor_velocity

@@ -1,0 +1,224 @@
+"""
+Linear output regulation (9)-(10) and the plain linear controller u = k_x xi~ (experiment 1).
+
+Regulator equations (Francis; the paper's ref. [6]). The offset d is a constant exosystem
+(d_dot = 0) entering (5) as E_d d; the regulated output is y = C xi~ = [theta_dot, x_dot] (6).
+A steady state xi~ = Pi d, u = Gamma d with y = 0 exists iff
+    A Pi + B Gamma + E_d = 0,    C Pi = 0.                                          (R)
+With E_d = -A e_1 (model.disturbance_input) the rows of (R) give pi_2 = pi_4 = 0 (C Pi = 0) and
+    ((M+m) g / (M l)) (pi_1 - 1) - Gamma / (M l) = 0,   -(m g / M) (pi_1 - 1) + Gamma / M = 0,
+whose only solution is pi_1 = 1, Gamma = 0 at every height l; pi_3 (where the robot stands) is
+free because x is not in y. We take pi_3 = 0: the robot stands where it is, and the controller
+    u = k_x (xi_hat - Pi d_hat) + Gamma d_hat = k_x xi_hat + k_d d_hat,   k_d = Gamma - k_x Pi,
+gives k_d = -k_x[0]: the feedback sees the true pitch theta~_hat - d_hat. Table I's k_d = -167
+against k_x[0] = 150 leaves (150 - 167) d in u, which the robot balances by driving at
+x_dot = -(k_x[0] + k_d) d / k_x[3] ~ 6.5 cm/s for d = 2.2 deg (it creeps; test_output_regulation).
+
+``check_regulator_solvable`` checks the discrete-time counterpart of (10) for the loop that runs
+(plant (5) with a zero-order hold, the current-estimate observer of core/observer.py, u = K zeta):
+1. the closed-loop matrix Phi of [xi~_k, zeta_k] is Schur (spectral radius < 1): the error system
+   is asymptotically stable;
+2. (10a) (I - Phi) X_c = Gamma_d has a unique solution X_c (I - Phi nonsingular; implied by 1);
+3. (10b) [C 0] X_c = 0: the steady state has zero theta_dot and x_dot.
+It also reports X_c's x entry (where the robot settles per radian of d; 0 for the k_d above) and
+its d_hat entry (1: the observer is unbiased).
+
+Velocity reference: both controllers feed back x - x_ref and x_dot - x_dot*, with x_ref moving at
+x_dot* (so standing still is x_dot* = 0). x_ref is latched on ``reset`` (take-over) and kept within
+``max_position_error`` of x so a long push does not wind up a large restoring force.
+"""
+from dataclasses import dataclass
+
+import numpy as np
+
+from .controller_base import ControlInput
+from .lqr import GainSchedule
+from .model import disturbance_input, linearize
+from .observer import C_HAT, discretize, DisturbanceObserver
+from .params import CONTROL_PERIOD, RobotParams
+
+#: Regulated output (6): y = [theta_dot, x_dot] = C xi~.
+C_OUT = np.array([[0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
+#: Largest position error the position hold acts on [m] (x_ref follows beyond it).
+MAX_POSITION_ERROR = 0.3
+
+
+def regulator_solution(l: float, p: RobotParams) -> tuple:
+    """
+    Solve the regulator equations (R) with pi_3 = 0 (stand where you are).
+
+    Returns (Pi shape (4,), Gamma float); raises ValueError if (R) has no exact solution.
+    """
+    A, B = linearize(l, p)
+    E_d = disturbance_input(l, p)
+    # Unknowns [Pi (4), Gamma]; equations A Pi + B Gamma = -E_d, C Pi = 0, pi_3 = 0.
+    M = np.zeros((7, 5))
+    M[:4, :4] = A
+    M[:4, 4] = B
+    M[4:6, :4] = C_OUT
+    M[6, 2] = 1.0
+    rhs = np.concatenate([-E_d, np.zeros(3)])
+    sol, _, rank, _ = np.linalg.lstsq(M, rhs, rcond=None)
+    if rank < 5 or np.linalg.norm(M @ sol - rhs) > 1e-9 * (1.0 + np.linalg.norm(rhs)):
+        raise ValueError('regulator equations have no unique solution at l = %g' % l)
+    return sol[:4], float(sol[4])
+
+
+def regulator_kd(k_x, l: float, p: RobotParams) -> float:
+    """Return k_d = Gamma - k_x Pi [N/rad] for the gain k_x (u = k_x xi) at height l [m]."""
+    Pi, Gamma = regulator_solution(l, p)
+    return float(Gamma - np.asarray(k_x, dtype=float) @ Pi)
+
+
+@dataclass(frozen=True)
+class RegulatorCheck:
+    """
+    Result of ``check_regulator_solvable``.
+
+    solvable: schur and unique and output_residual <= tol.
+    spectral_radius: of the closed-loop matrix Phi (schur: < 1).
+    unique: I - Phi is nonsingular (condition number below 1e12).
+    X_c: steady state [xi~ (4), zeta (5)] per radian of d.
+    output_residual: |[C 0] X_c| [(rad/s, m/s) per rad].
+    displacement: X_c's x entry [m per rad of d]; d_hat_gain: X_c's d_hat entry.
+    """
+
+    solvable: bool
+    spectral_radius: float
+    unique: bool
+    X_c: np.ndarray
+    output_residual: float
+    displacement: float
+    d_hat_gain: float
+
+
+def closed_loop_matrices(k_x, k_d: float, l: float, p: RobotParams,
+                         observer: DisturbanceObserver) -> tuple:
+    """
+    Return (Phi 9x9, Gamma_d (9,)) of the sampled closed loop w_{k+1} = Phi w_k + Gamma_d d.
+
+    w_k = [xi~_k, zeta_k]; xi~_{k+1} = Ad xi~_k + Bd u_k + Ed d (ZOH of (5)), u_k = K zeta_k with
+    K = [k_x, k_d], zeta_{k+1} = F zeta_k + G u_k + L C_m xi~_{k+1} (core/observer.py).
+    """
+    Ad5, Bd5 = discretize(l, p, observer.dt)
+    Ad, Ed, Bd = Ad5[:4, :4], Ad5[:4, 4], Bd5[:4]
+    F, G, L = observer.matrices(l)
+    K = np.append(np.asarray(k_x, dtype=float), k_d).reshape(1, 5)
+    Cm = C_HAT[:, :4]
+    Phi = np.zeros((9, 9))
+    Phi[:4, :4] = Ad
+    Phi[:4, 4:] = Bd.reshape(4, 1) @ K
+    Phi[4:, :4] = L @ Cm @ Ad
+    Phi[4:, 4:] = F + G.reshape(5, 1) @ K + L @ Cm @ Bd.reshape(4, 1) @ K
+    Gamma_d = np.concatenate([Ed, L @ Cm @ Ed])
+    return Phi, Gamma_d
+
+
+def check_regulator_solvable(k_x, k_d: float, l: float, p: RobotParams,
+                             observer: DisturbanceObserver, tol: float = 1e-9) -> RegulatorCheck:
+    """
+    Check the discrete-time (10) for gains K = [k_x, k_d] and ``observer``'s L at height l.
+
+    See the module docstring for exactly what is checked.
+    """
+    Phi, Gamma_d = closed_loop_matrices(k_x, k_d, l, p, observer)
+    rho = float(max(abs(np.linalg.eigvals(Phi))))
+    I_Phi = np.eye(9) - Phi
+    unique = bool(np.linalg.cond(I_Phi) < 1e12)
+    if unique:
+        X_c = np.linalg.solve(I_Phi, Gamma_d)
+    else:
+        X_c = np.full(9, np.nan)
+    residual = float(np.linalg.norm(C_OUT @ X_c[:4])) if unique else float('inf')
+    return RegulatorCheck(
+        solvable=bool(rho < 1.0 and unique and residual <= tol), spectral_radius=rho,
+        unique=unique, X_c=X_c, output_residual=residual, displacement=float(X_c[2]),
+        d_hat_gain=float(X_c[8]))
+
+
+class _PositionReference:
+    """x_ref moving at x_dot*, latched on take-over, kept within MAX_POSITION_ERROR of x."""
+
+    def __init__(self, dt: float, max_error: float):
+        self.dt = dt
+        self.max_error = max_error
+        self.x_ref = 0.0
+
+    def error(self, x: float, x_dot_ref: float) -> float:
+        e = x - self.x_ref
+        if e > self.max_error:
+            self.x_ref = x - self.max_error
+            e = self.max_error
+        elif e < -self.max_error:
+            self.x_ref = x + self.max_error
+            e = -self.max_error
+        self.x_ref += x_dot_ref * self.dt
+        return e
+
+
+class OutputRegulationController:
+    """
+    Output regulation (9): u = k_x(l) zeta_hat[:4] + k_d(l) d_hat, k_d = -k_x(l) Pi.
+
+    Uses the observer state s.xi_hat (it does not run the observer). With x_dot* = 0 the robot
+    stands still where it was when this controller took over, whatever the IMU offset d.
+    """
+
+    name = 'output_regulation'
+
+    def __init__(self, p: RobotParams, schedule: GainSchedule, dt: float = CONTROL_PERIOD,
+                 max_position_error: float = MAX_POSITION_ERROR):
+        self.p = p
+        self.schedule = schedule
+        Pi, Gamma = regulator_solution(p.height_min, p)
+        # Pi = e_1 and Gamma = 0 at every l (module docstring); the tests check it on a grid.
+        self._pi = tuple(float(v) for v in Pi)
+        self._gamma = Gamma
+        self._ref = _PositionReference(dt, max_position_error)
+
+    def k_d(self, l: float) -> float:
+        """Return the gain on d_hat at height l [m]: Gamma - k_x(l) Pi [N/rad]."""
+        k = self.schedule.gain_floats(l)
+        return self._gamma - sum(ki * pi for ki, pi in zip(k, self._pi))
+
+    def reset(self, s: ControlInput) -> None:
+        """Hold the position estimated at take-over."""
+        self._ref.x_ref = float(s.xi_hat[2])
+
+    def compute(self, s: ControlInput) -> float:
+        """Return the force u [N]."""
+        k0, k1, k2, k3 = self.schedule.gain_floats(s.l)
+        z0, z1, z2, z3, d_hat = s.xi_hat.tolist()
+        p0, p1, p2, p3 = self._pi
+        e_x = self._ref.error(z2 - p2 * d_hat, s.x_dot_ref)
+        return (k0 * (z0 - p0 * d_hat) + k1 * (z1 - p1 * d_hat) + k2 * e_x
+                + k3 * (z3 - p3 * d_hat - s.x_dot_ref) + self._gamma * d_hat)
+
+
+class LqrController:
+    """
+    The paper's linear controller u = k_x(l) xi~ on the measured states (experiment 1).
+
+    xi~ = [theta~, theta_dot, x - x_ref, x_dot - x_dot*]: the IMU offset is not compensated (the
+    paper's choice). With d != 0 the robot settles k_x[0] d / k_x[2] from x_ref or, if that is
+    beyond the position leash, drives at -(k_x[0] d - k_x[2] MAX_POSITION_ERROR) / k_x[3]
+    (about -5 cm/s for d = 2.2 deg; docs/linear_control.md).
+    """
+
+    name = 'lqr'
+
+    def __init__(self, p: RobotParams, schedule: GainSchedule, dt: float = CONTROL_PERIOD,
+                 max_position_error: float = MAX_POSITION_ERROR):
+        self.p = p
+        self.schedule = schedule
+        self._ref = _PositionReference(dt, max_position_error)
+
+    def reset(self, s: ControlInput) -> None:
+        """Hold the position measured at take-over."""
+        self._ref.x_ref = float(s.x)
+
+    def compute(self, s: ControlInput) -> float:
+        """Return the force u [N]."""
+        k0, k1, k2, k3 = self.schedule.gain_floats(s.l)
+        e_x = self._ref.error(s.x, s.x_dot_ref)
+        return k0 * s.theta + k1 * s.theta_dot + k2 * e_x + k3 * (s.x_dot - s.x_dot_ref)

@@ -1,0 +1,120 @@
+"""
+DJI RoboMaster C620 speed controller (ESC) with the M3508 P19 gear motor: current commands.
+
+Layouts and sources: docs/can_protocols.md. In short (RoboMaster C620 Brushless DC Motor Speed
+Controller User Guide, "CAN communication protocol"):
+
+- command, host -> ESC: standard ID 0x200 carries ESC IDs 1-4, ID 0x1FF ESC IDs 5-8; 8 bytes,
+  four big-endian int16 currents, ESC ID 1 (or 5) first; -16384..16384 <-> -20..20 A;
+- feedback, ESC -> host, ID 0x200 + ESC ID, 8 bytes: rotor angle uint16 0..8191 (one rotor
+  turn), rotor speed int16 [rpm], torque current int16 (same scale as the command),
+  motor temperature uint8 [deg C], one unused byte.
+
+Torque <-> current through the M3508 P19's torque constant 0.3 N m/A at the output shaft
+(DJI M3508 P19 specifications; the gearbox ratio is 3591/187 ~ 19.2). So 20 A is 6 N m.
+The ESC has no enable: enable_frames is empty and disable_frames commands zero current.
+"""
+import math
+import struct
+from typing import Dict, Iterable, List, Optional
+
+from .base import Frame, frame_bytes, MotorFeedback, MotorProtocol
+
+#: Command IDs: ESC IDs 1-4 and 5-8.
+COMMAND_ID_1_4 = 0x200
+COMMAND_ID_5_8 = 0x1FF
+#: Feedback ID of ESC i is FEEDBACK_BASE_ID + i.
+FEEDBACK_BASE_ID = 0x200
+#: Full-scale command / feedback code and the current it stands for [A].
+CURRENT_CODE_MAX = 16384
+CURRENT_MAX = 20.0
+#: M3508 P19 figures at the output shaft.
+M3508_TORQUE_CONSTANT = 0.3        # [N m/A]
+M3508_GEAR_RATIO = 3591.0 / 187.0  # rotor turns per output turn
+ENCODER_COUNTS = 8192              # rotor angle 0..8191
+
+_FOUR_INT16 = struct.Struct('>4h')
+_FEEDBACK = struct.Struct('>HhhBx')
+
+
+class DjiC620Protocol(MotorProtocol):
+    """
+    C620 current-command codec; motor IDs are the ESC IDs 1..8 (other IDs are ignored).
+
+    torque_constant [N m/A] and gear_ratio describe the motor (defaults: M3508 P19);
+    current_limit [A] <= 20 caps the commanded current.
+    """
+
+    name = 'dji_c620'
+
+    def __init__(self, torque_constant: float = M3508_TORQUE_CONSTANT,
+                 gear_ratio: float = M3508_GEAR_RATIO, current_limit: float = CURRENT_MAX):
+        if not (torque_constant > 0.0 and gear_ratio > 0.0 and 0.0 < current_limit <= 20.0):
+            raise ValueError('invalid C620 parameters')
+        self.torque_constant = float(torque_constant)
+        self.gear_ratio = float(gear_ratio)
+        self.current_limit = float(current_limit)
+        self._code_per_nm = CURRENT_CODE_MAX / CURRENT_MAX / self.torque_constant
+        self._code_limit = int(self.current_limit * CURRENT_CODE_MAX / CURRENT_MAX)
+
+    def current_code(self, torque: float) -> int:
+        """Command code for a motor torque [N m]: rounded, clamped, 0 for NaN/inf."""
+        if not -math.inf < torque < math.inf:  # NaN fails both comparisons
+            return 0
+        code = torque * self._code_per_nm  # may overflow to inf: clamp before rounding
+        limit = self._code_limit
+        return limit if code >= limit else -limit if code <= -limit else round(code)
+
+    def torque_frames(self, torques: Dict[int, float]) -> List[Frame]:
+        """One frame per ID group (0x200 / 0x1FF) in use; ESCs not in ``torques`` get 0 A."""
+        low = high = None
+        for motor_id, tau in torques.items():
+            if 1 <= motor_id <= 4:
+                low = low or [0, 0, 0, 0]
+                low[motor_id - 1] = self.current_code(tau)
+            elif 5 <= motor_id <= 8:
+                high = high or [0, 0, 0, 0]
+                high[motor_id - 5] = self.current_code(tau)
+        frames = []
+        if low is not None:
+            frames.append(Frame(COMMAND_ID_1_4, _FOUR_INT16.pack(*low)))
+        if high is not None:
+            frames.append(Frame(COMMAND_ID_5_8, _FOUR_INT16.pack(*high)))
+        return frames
+
+    def zero_torque_frames(self, motor_ids: Iterable[int]) -> List[Frame]:
+        """Zero current to the ESCs (frames for their ID groups)."""
+        return self.torque_frames(dict.fromkeys(motor_ids, 0.0))
+
+    def enable_frames(self, motor_ids: Iterable[int]) -> List[Frame]:
+        """Return no frames: the C620 has no motor mode."""
+        return []
+
+    def disable_frames(self, motor_ids: Iterable[int]) -> List[Frame]:
+        """Zero current (the C620 has no motor mode to leave)."""
+        return self.zero_torque_frames(motor_ids)
+
+    def decode_feedback(self, frame: Frame) -> Optional[MotorFeedback]:
+        """
+        Decode an ESC's feedback frame (ID 0x201..0x208, 8 bytes); None for anything else.
+
+        position: the rotor's single-turn angle referred to the output, angle 2 pi / 8192 /
+        gear_ratio [rad] -- it wraps every 1/gear_ratio output turn, so it is not a wheel
+        angle; velocity: rotor rpm 2 pi / 60 / gear_ratio [rad/s]; torque: torque current
+        times the torque constant [N m]; temperature [deg C].
+        """
+        data = frame_bytes(frame)
+        if data is None or len(data) != 8:
+            return None
+        motor_id = frame.arbitration_id - FEEDBACK_BASE_ID
+        if not 1 <= motor_id <= 8:
+            return None
+        angle, rpm, current, temperature = _FEEDBACK.unpack(data)
+        if angle >= ENCODER_COUNTS:
+            return None
+        return MotorFeedback(
+            motor_id,
+            angle * (2.0 * math.pi / ENCODER_COUNTS) / self.gear_ratio,
+            rpm * (2.0 * math.pi / 60.0) / self.gear_ratio,
+            current * (CURRENT_MAX / CURRENT_CODE_MAX) * self.torque_constant,
+            float(temperature))

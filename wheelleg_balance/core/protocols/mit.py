@@ -1,0 +1,229 @@
+"""
+MIT-mode CAN protocol (mini-cheetah motor firmware, CubeMars/T-Motor AK series).
+
+Layouts, the float<->uint mapping, sources and byte vectors: docs/can_protocols.md. In short:
+
+- command, host -> motor: standard ID = motor ID, 8 bytes, big-endian bit fields
+  p[16] v[12] kp[12] kd[12] t[12];
+- reply, motor -> host: [motor ID, p[16], v[12], t[12]] (6 bytes), or 8 bytes with
+  temperature and error code appended (newer CubeMars firmware);
+- special frames: FF FF FF FF FF FF FF FC enter motor mode, ... FD exit, ... FE set zero;
+- float -> uint: u = int((clamp(x, lo, hi) - lo) * ((1 << bits) - 1) / (hi - lo)), truncating,
+  as the firmware does (bgkatz/motorcontrol math_ops.c float_to_uint); the CubeMars manual's
+  example code omits the -1, the firmware and the drivers in use keep it, and so do we.
+
+This module is both sides: the host (torque_frames, decode_feedback) and, for the simulated
+robot, the motor (decode_command, encode_reply). Per-tick encoding is int math and bytes only.
+"""
+import math
+from typing import Dict, Iterable, List, NamedTuple, Optional, Union
+
+from .base import Frame, frame_bytes, MAX_STANDARD_ID, MotorFeedback, MotorProtocol
+
+ENTER_MOTOR_MODE = bytes((0xFF,) * 7 + (0xFC,))
+EXIT_MOTOR_MODE = bytes((0xFF,) * 7 + (0xFD,))
+SET_ZERO_POSITION = bytes((0xFF,) * 7 + (0xFE,))
+_SPECIAL = {ENTER_MOTOR_MODE: 'enter', EXIT_MOTOR_MODE: 'exit', SET_ZERO_POSITION: 'zero'}
+
+
+def float_to_uint(x: float, x_min: float, x_max: float, bits: int) -> int:
+    """
+    Map x in [x_min, x_max] to an unsigned int of ``bits`` bits, as the motor firmware does.
+
+    x is clamped into the range first; truncation, not rounding. NaN maps like 0.0.
+    """
+    if x != x:
+        x = 0.0
+    x = min(max(x, x_min), x_max)
+    return int((x - x_min) * ((1 << bits) - 1) / (x_max - x_min))
+
+
+def uint_to_float(x_int: int, x_min: float, x_max: float, bits: int) -> float:
+    """Inverse of float_to_uint (up to its truncation): the value the motor decodes."""
+    return x_int * (x_max - x_min) / ((1 << bits) - 1) + x_min
+
+
+class MitCommand(NamedTuple):
+    """A decoded MIT command: tau = kp (p - q) + kd (v - q_dot) + torque on the motor."""
+
+    motor_id: int
+    position: float
+    velocity: float
+    kp: float
+    kd: float
+    torque: float
+
+
+class MitProtocol(MotorProtocol):
+    """
+    MIT-mode codec with the motor model's ranges (defaults: CubeMars AK80-9 class).
+
+    p_min/p_max [rad], v_min/v_max [rad/s], kp 0..kp_max [N m/rad], kd 0..kd_max [N m s/rad],
+    t_min/t_max [N m]: the ranges the motor firmware was built with (they must match, or every
+    value is scaled wrong). master_id: the standard ID the motor replies on (the firmware's
+    CAN_MASTER, 0 by default); replies on the motor's own ID are accepted too, as some CubeMars
+    firmware sends them that way.
+    """
+
+    name = 'mit'
+
+    def __init__(self, p_min: float = -12.5, p_max: float = 12.5, v_min: float = -50.0,
+                 v_max: float = 50.0, kp_max: float = 500.0, kd_max: float = 5.0,
+                 t_min: float = -18.0, t_max: float = 18.0, master_id: int = 0):
+        ranges = ((p_min, p_max), (v_min, v_max), (0.0, kp_max), (0.0, kd_max), (t_min, t_max))
+        for lo, hi in ranges:
+            if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+                raise ValueError('MIT range [%r, %r] is not a finite, non-empty interval'
+                                 % (lo, hi))
+        if not 0 <= master_id <= MAX_STANDARD_ID:
+            raise ValueError('master_id must be a standard 11-bit CAN ID')
+        self.p_min, self.p_max = float(p_min), float(p_max)
+        self.v_min, self.v_max = float(v_min), float(v_max)
+        self.kp_max, self.kd_max = float(kp_max), float(kd_max)
+        self.t_min, self.t_max = float(t_min), float(t_max)
+        self.master_id = int(master_id)
+        # Torque-only command (p = v = kp = kd = 0): the first six bytes and kd's low nibble
+        # never change, so a tick only packs the 12-bit torque.
+        p0 = float_to_uint(0.0, self.p_min, self.p_max, 16)
+        v0 = float_to_uint(0.0, self.v_min, self.v_max, 12)
+        self._torque_prefix = bytes((p0 >> 8, p0 & 0xFF, v0 >> 4, (v0 & 0xF) << 4, 0, 0))
+        self._t_span = self.t_max - self.t_min
+
+    # ---- host side -------------------------------------------------------------------------
+
+    def command_frame(self, motor_id: int, position: float, velocity: float, kp: float,
+                      kd: float, torque: float) -> Frame:
+        """
+        Encode a full MIT command: the motor applies kp (p - q) + kd (v - q_dot) + torque.
+
+        Values are clamped to the ranges; non-finite ones are sent as 0. (A command with every
+        field at its maximum would read FF FF FF FF FF FF FF Fx, which the firmware takes for a
+        special frame; keep p below p_max if you ever need such a command.)
+        """
+        p = float_to_uint(_finite(position), self.p_min, self.p_max, 16)
+        v = float_to_uint(_finite(velocity), self.v_min, self.v_max, 12)
+        kp_i = float_to_uint(_finite(kp), 0.0, self.kp_max, 12)
+        kd_i = float_to_uint(_finite(kd), 0.0, self.kd_max, 12)
+        t = float_to_uint(_finite(torque), self.t_min, self.t_max, 12)
+        data = bytes((p >> 8, p & 0xFF, v >> 4, ((v & 0xF) << 4) | (kp_i >> 8), kp_i & 0xFF,
+                      kd_i >> 4, ((kd_i & 0xF) << 4) | (t >> 8), t & 0xFF))
+        return Frame(motor_id, data)
+
+    def torque_frames(self, torques: Dict[int, float]) -> List[Frame]:
+        """One torque-only command (p = v = kp = kd = 0) per motor; NaN/inf torque sends 0."""
+        frames = []
+        t_min, t_max, span, prefix = self.t_min, self.t_max, self._t_span, self._torque_prefix
+        for motor_id, tau in torques.items():
+            if not -math.inf < tau < math.inf:  # NaN fails both comparisons
+                tau = 0.0
+            elif tau > t_max:
+                tau = t_max
+            elif tau < t_min:
+                tau = t_min
+            t = int((tau - t_min) * 4095 / span)  # float_to_uint(tau, t_min, t_max, 12)
+            frames.append(Frame(motor_id, prefix + bytes((t >> 8, t & 0xFF))))
+        return frames
+
+    def zero_torque_frames(self, motor_ids: Iterable[int]) -> List[Frame]:
+        """
+        Torque-only commands of zero torque.
+
+        A 12-bit code over a symmetric range has no exact zero: the firmware applies
+        t_min + 2047 (t_max - t_min) / 4095 (-4.4 mN m for +-18 N m), far below friction.
+        """
+        return self.torque_frames(dict.fromkeys(motor_ids, 0.0))
+
+    def enable_frames(self, motor_ids: Iterable[int]) -> List[Frame]:
+        """Enter motor mode (FF .. FC); the motor answers with its state."""
+        return [Frame(i, ENTER_MOTOR_MODE) for i in motor_ids]
+
+    def disable_frames(self, motor_ids: Iterable[int]) -> List[Frame]:
+        """
+        Zero torque, then exit motor mode (FF .. FD), per motor.
+
+        The zero command first means a motor that is enabled again does not start from a stale
+        command (observed with CubeMars motors by dfki-ric-underactuated-lab's driver).
+        """
+        frames = []
+        for i in motor_ids:
+            frames += self.zero_torque_frames((i,))
+            frames.append(Frame(i, EXIT_MOTOR_MODE))
+        return frames
+
+    def set_zero_frames(self, motor_ids: Iterable[int]) -> List[Frame]:
+        """Make the present position the motors' zero (FF .. FE). Never sent automatically."""
+        return [Frame(i, SET_ZERO_POSITION) for i in motor_ids]
+
+    def decode_feedback(self, frame: Frame) -> Optional[MotorFeedback]:
+        """
+        Decode a reply: [id, p16, v12, t12] (6 bytes) or + [temperature, error] (8 bytes).
+
+        Accepted on a standard ID equal to master_id or to the motor ID in byte 0; anything
+        else (other lengths, extended IDs, other IDs) gives None.
+        """
+        data = frame_bytes(frame)
+        if data is None or len(data) not in (6, 8):
+            return None
+        motor_id = data[0]
+        if frame.arbitration_id != self.master_id and frame.arbitration_id != motor_id:
+            return None
+        p = (data[1] << 8) | data[2]
+        v = (data[3] << 4) | (data[4] >> 4)
+        t = ((data[4] & 0xF) << 8) | data[5]
+        temperature = error = None
+        if len(data) == 8:
+            temperature = float(data[6] - 256 if data[6] > 127 else data[6])  # int8 [deg C]
+            error = data[7]
+        return MotorFeedback(motor_id, uint_to_float(p, self.p_min, self.p_max, 16),
+                             uint_to_float(v, self.v_min, self.v_max, 12),
+                             uint_to_float(t, self.t_min, self.t_max, 12), temperature, error)
+
+    # ---- motor side (simulated robot) ------------------------------------------------------
+
+    def decode_command(self, frame: Frame) -> Union[MitCommand, str, None]:
+        """
+        Decode a frame as a motor does: 'enter', 'exit', 'zero', a MitCommand, or None.
+
+        None for frames that are not 8-byte standard frames. The motor ID is the frame's ID;
+        a motor only acts on frames with its own ID (the caller filters).
+        """
+        data = frame_bytes(frame)
+        if data is None or len(data) != 8:
+            return None
+        special = _SPECIAL.get(data)
+        if special is not None:
+            return special
+        p = (data[0] << 8) | data[1]
+        v = (data[2] << 4) | (data[3] >> 4)
+        kp = ((data[3] & 0xF) << 8) | data[4]
+        kd = (data[5] << 4) | (data[6] >> 4)
+        t = ((data[6] & 0xF) << 8) | data[7]
+        return MitCommand(frame.arbitration_id,
+                          uint_to_float(p, self.p_min, self.p_max, 16),
+                          uint_to_float(v, self.v_min, self.v_max, 12),
+                          uint_to_float(kp, 0.0, self.kp_max, 12),
+                          uint_to_float(kd, 0.0, self.kd_max, 12),
+                          uint_to_float(t, self.t_min, self.t_max, 12))
+
+    def encode_reply(self, motor_id: int, position: float, velocity: float, torque: float,
+                     temperature: Optional[float] = None, error: int = 0) -> Frame:
+        """
+        Encode the motor's reply on master_id: 6 bytes, or 8 with temperature and error code.
+
+        temperature [deg C]. Values are clamped to the ranges (non-finite ones sent as 0), as the
+        firmware does.
+        """
+        p = float_to_uint(_finite(position), self.p_min, self.p_max, 16)
+        v = float_to_uint(_finite(velocity), self.v_min, self.v_max, 12)
+        t = float_to_uint(_finite(torque), self.t_min, self.t_max, 12)
+        fields = [motor_id & 0xFF, p >> 8, p & 0xFF, v >> 4, ((v & 0xF) << 4) | (t >> 8),
+                  t & 0xFF]
+        if temperature is not None:
+            temp = int(min(127.0, max(-128.0, _finite(temperature))))
+            fields += [temp & 0xFF, error & 0xFF]
+        return Frame(self.master_id, bytes(fields))
+
+
+def _finite(x: float) -> float:
+    """Return x if it is a finite number, else 0.0."""
+    return x if math.isfinite(x) else 0.0
