@@ -137,6 +137,7 @@ class BalanceCore:
         self._active = self.config.controller
         self._requested: Optional[str] = None
         self._input = ControlInput(l=p.height_min)
+        self._l = p.height_min  # last valid height [m]
         self._u_applied = 0.0
         self._u_cmd = 0.0
         self._blend_offset = 0.0
@@ -176,13 +177,19 @@ class BalanceCore:
         for controller in self.controllers.values():
             controller.reset(s)
 
+    def _height(self, l: float) -> float:
+        """Clamp l into the leg's range; a non-finite l (legs out of reach) keeps the last."""
+        if math.isfinite(l):
+            self._l = self.p.clamp_height(l)
+        return self._l
+
     def _fill_input(self, meas, ref, x, x_dot, xi_hat) -> ControlInput:
         s = self._input
         s.theta = meas.theta_meas
         s.theta_dot = meas.theta_dot
         s.x = x
         s.x_dot = x_dot
-        s.l = self.p.clamp_height(meas.l)
+        s.l = self._height(meas.l)
         s.x_dot_ref = ref.x_dot_ref
         s.xi_hat = xi_hat
         return s
@@ -192,7 +199,7 @@ class BalanceCore:
         dt = self.dt if dt is None else dt
         x, x_dot, yaw_rate = self.odometry.update(
             meas.wheel_vel_left, meas.wheel_vel_right, meas.theta_dot, dt)
-        l = self.p.clamp_height(meas.l)
+        l = self._height(meas.l)
         xi_hat = self.observer.update(meas.theta_meas, x, self._u_applied, l)
         s = self._fill_input(meas, ref, x, x_dot, xi_hat)
 
