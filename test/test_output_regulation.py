@@ -156,7 +156,7 @@ def test_observer_error_poles_on_grid_and_between(observer):
 def test_observer_converges_on_the_linear_model():
     """Exact discrete model (5), arbitrary input: every estimate error decays as placed."""
     l = 0.6
-    obs = DisturbanceObserver(P)
+    obs = DisturbanceObserver(P, d_hold_angle=None)  # the paper's observer, no hold
     Ad, Bd = discretize(l, P)
     zeta = np.array([0.05, 0.1, 0.2, -0.1, math.radians(2.2)])   # true [theta~, .., d]
     obs.reset([0.0, 0.0, 0.0, 0.0, 0.0])

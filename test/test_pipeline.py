@@ -111,3 +111,25 @@ def test_torques_are_finite_and_within_limits_for_any_input(
         out = core.step(meas, Reference(v, w), DT)
         for tau in (out.tau_left, out.tau_right):
             assert math.isfinite(tau) and abs(tau) <= core.config.max_wheel_torque
+
+
+def startup_overshoot_deg(d_hold_angle):
+    """IDA-PBC (Table I, theta~ - d_hat) start-up from the tail; d = 2.2 deg, d_hat0 = 2.7."""
+    from wheelleg_balance.core.simulation import simulate
+    sc = Scenario(controller='ida_pbc', duration=6.0, imu_offset=math.radians(2.2),
+                  d_hat0=math.radians(2.7))
+    core = BalanceCore(RobotParams(), CoreConfig(d_hat0=sc.d_hat0))
+    core.observer.d_hold_angle = d_hold_angle
+    result = simulate(sc, core=core)
+    assert not result.fell
+    return result.overshoot_deg(), math.degrees(result.d_hat[-1])
+
+
+def test_observer_holds_d_hat_while_lifting_off_the_tail():
+    """Far from upright the linear observer mistakes model error for offset: the hold stops it."""
+    held, d_end_held = startup_overshoot_deg(math.radians(10.0))
+    free, d_end_free = startup_overshoot_deg(math.inf)
+    assert held < 3.0, held
+    assert free > 2.0 * held, (free, held)
+    # Either way the estimate ends at the true offset once upright.
+    assert abs(d_end_held - 2.2) < 0.1 and abs(d_end_free - 2.2) < 0.1

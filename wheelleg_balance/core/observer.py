@@ -77,10 +77,17 @@ class DisturbanceObserver:
 
     Call ``update`` once per tick with the measured pitch theta~ [rad], the measured position x
     [m], the force u [N] applied during the last period and the height l [m].
+
+    ``d_hold_angle`` [rad]: while the pitch is this far from the estimated equilibrium
+    (|theta~ - d_hat| > d_hold_angle, e.g. lifting off the tail at 36 deg), the linearization (2)
+    is far off, and the residual it leaves is model error, not IMU offset: d_hat is held and the
+    other states are still corrected. None disables the hold (the paper's observer).
     """
 
     def __init__(self, p: RobotParams = RobotParams(), dt: float = CONTROL_PERIOD,
-                 poles=DEFAULT_OBSERVER_POLES, heights: Optional[np.ndarray] = None):
+                 poles=DEFAULT_OBSERVER_POLES, heights: Optional[np.ndarray] = None,
+                 d_hold_angle: Optional[float] = math.radians(10.0)):
+        self.d_hold_angle = math.inf if d_hold_angle is None else d_hold_angle
         if heights is None:
             n = int(round((p.height_max - p.height_min) / DEFAULT_HEIGHT_STEP)) + 1
             heights = np.linspace(p.height_min, p.height_max, n)
@@ -141,6 +148,8 @@ class DisturbanceObserver:
         if math.isfinite(y0) and math.isfinite(y1):
             z = [f0 * z0 + f1 * z1 + f2 * z2 + f3 * z3 + f4 * z4 + g * u + l0 * y0 + l1 * y1
                  for f0, f1, f2, f3, f4, g, l0, l1 in self._cur]
+            if abs(y0 - z4) > self.d_hold_angle:
+                z[4] = z4  # outside the linear region: hold d_hat
         else:
             # A lost measurement must not poison the estimate: predict only this tick.
             z = [a0 * z0 + a1 * z1 + a2 * z2 + a3 * z3 + a4 * z4 + b * u
