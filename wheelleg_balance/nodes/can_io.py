@@ -1,0 +1,143 @@
+"""
+The wheel motors' CAN bus for balance_node: python-can on one side, a core protocol on the other.
+
+Sending is synchronous from the control thread, one ``bus.send`` with a short timeout per frame
+(never the kernel's periodic send: it would keep sending the last torque if Python stalled).
+A failed send (``can.CanError``, e.g. the ``CanOperationError`` of a full socketcan TX queue, or
+an OSError) is returned as a message for the safety supervisor, never raised.
+Replies arrive on a ``can.Notifier`` thread; the listener decodes them with the protocol and
+keeps, per motor, the monotonic time of the last reply, a reply counter and the last feedback.
+"""
+import threading
+import time
+from typing import Callable, Dict, Iterable, Optional
+
+import can
+
+from ..core.protocols.base import Frame, MotorFeedback, MotorProtocol
+
+
+def open_bus(interface: str, channel: str, udp_port: int = 43113) -> can.BusABC:
+    """
+    Open the bus with python-can.
+
+    socketcan on the robot (bitrate is set with `ip link`, 1 Mbit/s), ``virtual`` in one
+    process, ``udp_multicast`` between processes (channel = multicast group; udp_port keeps
+    concurrent test runs apart, since a socket bound to the port sees every joined group).
+    """
+    if interface == 'udp_multicast':
+        return can.Bus(interface=interface, channel=channel, port=udp_port)
+    return can.Bus(interface=interface, channel=channel)
+
+
+class MotorStatus:
+    """What is known about one motor from its replies (written by the notifier thread)."""
+
+    __slots__ = ('motor_id', 'last_reply', 'replies', 'feedback')
+
+    def __init__(self, motor_id: int):
+        self.motor_id = motor_id
+        self.last_reply: Optional[float] = None   # monotonic [s]
+        self.replies = 0
+        self.feedback: Optional[MotorFeedback] = None
+
+
+class _ReplyListener(can.Listener):
+    """Decodes every received frame; keeps the notifier thread alive through bus errors."""
+
+    def __init__(self, io: 'CanIo'):
+        self._io = io
+
+    def on_message_received(self, msg: can.Message) -> None:
+        self._io._on_frame(msg)
+
+    def on_error(self, exc: Exception) -> None:
+        self._io.rx_errors += 1
+        self._io.last_rx_error = str(exc)
+        time.sleep(0.01)  # a bus that keeps failing must not spin this thread
+
+    def stop(self) -> None:
+        """Nothing to release."""
+
+
+class CanIo:
+    """
+    Send frames and track motor replies on one bus.
+
+    ``reply_times`` ({motor_id: monotonic time of the last reply or None}) is what the safety
+    supervisor reads each tick. Counters: tx_frames, tx_errors, rx_frames, rx_replies,
+    rx_errors; last_tx_error / last_rx_error hold the newest error text.
+    """
+
+    def __init__(self, bus: can.BusABC, protocol: MotorProtocol, motor_ids: Iterable[int],
+                 send_timeout: float = 0.0005, clock: Callable[[], float] = time.monotonic):
+        self.bus = bus
+        self.protocol = protocol
+        self.send_timeout = send_timeout
+        self._clock = clock
+        self.motors: Dict[int, MotorStatus] = {i: MotorStatus(i) for i in motor_ids}
+        self.reply_times: Dict[int, Optional[float]] = dict.fromkeys(self.motors)
+        self.tx_frames = 0
+        self.tx_errors = 0
+        self.rx_frames = 0
+        self.rx_replies = 0
+        self.rx_errors = 0
+        self.last_tx_error = ''
+        self.last_rx_error = ''
+        self._lock = threading.Lock()
+        self._notifier: Optional[can.Notifier] = None
+        self._closed = False
+
+    def start(self) -> None:
+        """Start receiving replies (a can.Notifier thread)."""
+        self._notifier = can.Notifier(self.bus, [_ReplyListener(self)], timeout=0.1)
+
+    def _on_frame(self, msg: can.Message) -> None:
+        self.rx_frames += 1
+        if msg.is_error_frame or msg.is_remote_frame:
+            return
+        feedback = self.protocol.decode_feedback(
+            Frame(msg.arbitration_id, bytes(msg.data), msg.is_extended_id))
+        if feedback is None:
+            return
+        status = self.motors.get(feedback.motor_id)
+        if status is None:
+            return
+        now = self._clock()
+        status.last_reply = now
+        status.replies += 1
+        status.feedback = feedback
+        self.reply_times[feedback.motor_id] = now
+        self.rx_replies += 1
+
+    def send(self, frames: Iterable[Frame]) -> Optional[str]:
+        """Send the frames in order; stop at the first failure and return its text (else None)."""
+        with self._lock:  # the control thread and shutdown may both send
+            if self._closed:
+                return 'bus closed'
+            for f in frames:
+                msg = can.Message(arbitration_id=f.arbitration_id, data=f.data,
+                                  is_extended_id=f.is_extended_id)
+                try:
+                    self.bus.send(msg, timeout=self.send_timeout)
+                except (can.CanError, OSError, ValueError) as exc:
+                    self.tx_errors += 1
+                    self.last_tx_error = '%s: %s' % (type(exc).__name__, exc)
+                    return self.last_tx_error
+                self.tx_frames += 1
+            return None
+
+    def close(self) -> None:
+        """Stop the notifier and shut the bus down (idempotent, never raises)."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+        try:
+            if self._notifier is not None:
+                self._notifier.stop(timeout=1.0)
+        finally:
+            try:
+                self.bus.shutdown()
+            except Exception:  # noqa: B902 -- closing must not fail the shutdown path
+                pass
