@@ -29,13 +29,14 @@ from typing import Mapping, Optional, Tuple
 IMU_STALE = 'imu_stale'
 JOINT_STATES_STALE = 'joint_states_stale'
 NON_FINITE = 'non_finite'
+IMPLAUSIBLE = 'implausible'
 FALL = 'fall'
 MOTOR_SILENT = 'motor_silent'
 CAN_SEND = 'can_send'
 INTERNAL = 'internal_error'
 
 #: Every fault code, in the order the checks run.
-FAULT_CODES = (IMU_STALE, JOINT_STATES_STALE, NON_FINITE, FALL, MOTOR_SILENT, CAN_SEND, INTERNAL)
+FAULT_CODES = (IMU_STALE, JOINT_STATES_STALE, NON_FINITE, IMPLAUSIBLE, FALL, MOTOR_SILENT, CAN_SEND, INTERNAL)
 
 
 class Mode(enum.IntEnum):
@@ -54,12 +55,24 @@ class SafetyLimits:
     fall_angle: |theta~| beyond which the robot has fallen [rad] (45 deg; the tail rest is 36 deg).
     imu_timeout / joint_state_timeout: age of the newest sample that counts as stale [s].
     motor_timeout: time a commanded motor may stay without a reply [s].
+    max_pitch_rate: |theta_dot| no balancing robot reaches: beyond it the IMU sample is broken
+    [rad/s] (35 rad/s = 2000 deg/s, the full scale of common MEMS gyros).
+    max_wheel_velocity: |wheel velocity| no drive of this robot reaches [rad/s] (200 rad/s:
+    20 m/s on 0.1 m wheels; unloaded wheels in a simulated tumble reached 103 rad/s).
     """
 
     fall_angle: float = math.radians(45.0)
     imu_timeout: float = 0.05
     joint_state_timeout: float = 0.05
     motor_timeout: float = 0.05
+    max_pitch_rate: float = 35.0
+    max_wheel_velocity: float = 200.0
+
+    def plausible(self, s: 'SensorSnapshot') -> bool:
+        """Return True when the rates in ``s`` are within what the robot can do (False for NaN)."""
+        return (abs(s.theta_dot) <= self.max_pitch_rate
+                and abs(s.wheel_vel_left) <= self.max_wheel_velocity
+                and abs(s.wheel_vel_right) <= self.max_wheel_velocity)
 
 
 @dataclass(frozen=True)
@@ -158,7 +171,14 @@ class SafetySupervisor:
             found.append(Fault(NON_FINITE, 'non-finite measurement: theta %r theta_dot %r '
                                'wheel_vel %r %r l %r' % (s.theta, s.theta_dot, s.wheel_vel_left,
                                                          s.wheel_vel_right, s.l), now))
-        elif abs(s.theta) > lim.fall_angle:
+        elif not lim.plausible(s):
+            # Finite but impossible: one such sample would throw odometry and the observer off.
+            found = found or []
+            found.append(Fault(IMPLAUSIBLE, 'implausible measurement: theta_dot %.4g rad/s '
+                               '(max %.4g), wheel_vel %.4g %.4g rad/s (max %.4g)'
+                               % (s.theta_dot, lim.max_pitch_rate, s.wheel_vel_left,
+                                  s.wheel_vel_right, lim.max_wheel_velocity), now))
+        if s.imu_time is not None and abs(s.theta) > lim.fall_angle:  # False for NaN
             found = found or []
             found.append(Fault(FALL, '|theta| %.1f deg > fall_angle %.1f deg'
                                % (math.degrees(abs(s.theta)), math.degrees(lim.fall_angle)), now))

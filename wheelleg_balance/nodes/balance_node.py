@@ -120,7 +120,8 @@ class BalanceNode(Node):
         self.right_dir = check_direction(v['can.right_direction'])
         self.supervisor = SafetySupervisor(SafetyLimits(
             fall_angle=v['fall_angle'], imu_timeout=v['imu_timeout'],
-            joint_state_timeout=v['joint_state_timeout'], motor_timeout=v['motor_timeout']),
+            joint_state_timeout=v['joint_state_timeout'], motor_timeout=v['motor_timeout'],
+            max_pitch_rate=v['max_pitch_rate'], max_wheel_velocity=v['max_wheel_velocity']),
             self.motor_ids)
         self.shaper = ReferenceShaper(
             v['reference.max_velocity'], v['reference.max_acceleration'],
@@ -139,6 +140,8 @@ class BalanceNode(Node):
         self._legs = None       # (t, l)
         self._cmd = None        # (t, x_dot*, yaw_rate*)
         self.rejected_cmd_vel = 0
+        self._imu_stamp = None  # header stamp of the newest IMU sample
+        self.frozen_imu = 0     # IMU samples dropped for repeating the previous stamp
         self._snapshot = SensorSnapshot()
 
         self._pending = {}
@@ -250,6 +253,12 @@ class BalanceNode(Node):
             theta = math.nan
         else:
             theta = pitch_from_quaternion(o.x, o.y, o.z, o.w)
+        stamp = (msg.header.stamp.sec, msg.header.stamp.nanosec)
+        if stamp == self._imu_stamp and stamp != (0, 0):
+            # A driver republishing one sample: keep its receipt time so it goes stale.
+            self.frozen_imu += 1
+            return
+        self._imu_stamp = stamp
         self._imu = (time.monotonic(), theta, pitch_rate_from_gyro(msg.angular_velocity.y))
 
     def _on_joint_states(self, msg: JointState) -> None:
@@ -382,7 +391,8 @@ class BalanceNode(Node):
         if self._pending:
             self._apply_parameters()
         s = self._read_samples(now)
-        if s.imu_time is not None and s.joint_time is not None:
+        if s.imu_time is not None and s.joint_time is not None and \
+                self.supervisor.limits.plausible(s):
             self.odometry.update(s.wheel_vel_left, s.wheel_vel_right, s.theta_dot, dt)
         if self._arm_request is not None:
             with self._pending_lock:
@@ -475,7 +485,8 @@ class BalanceNode(Node):
                 core.set_ida_pbc_gains(self._ida_pbc_gains(v))
             elif name in ('d_hat0', 'yaw_rate_gain', 'max_wheel_torque', 'switch_blend_time'):
                 setattr(core.config, name, value)
-            elif name in ('fall_angle', 'imu_timeout', 'joint_state_timeout', 'motor_timeout'):
+            elif name in ('fall_angle', 'imu_timeout', 'joint_state_timeout', 'motor_timeout',
+                          'max_pitch_rate', 'max_wheel_velocity'):
                 setattr(sup.limits, name, value)
             elif name == 'cmd_vel_timeout':
                 shaper.cmd_vel_timeout = value
@@ -557,7 +568,7 @@ class BalanceNode(Node):
             controller_parameter=self._values['controller'],
             x_dot_ref=self.shaper.x_dot_ref, yaw_rate_ref=self.shaper.yaw_rate_ref,
             cmd_vel_timed_out=self.shaper.timed_out,
-            rejected_cmd_vel=self.rejected_cmd_vel)
+            rejected_cmd_vel=self.rejected_cmd_vel, frozen_imu_samples=self.frozen_imu)
 
         t = self.timing()
         loop = DiagnosticStatus(name='balance_node: control loop', hardware_id=self._hardware_id)

@@ -116,6 +116,10 @@ SPECS = (
     _f('leg.com_x', 0.0, 'body centre of mass ahead of the hip midpoint [m]', -1.0, 1.0, RO),
     # Safety.
     _f('max_wheel_torque', 12.0, 'torque limit of each wheel [N m]', 0.0, 100.0),
+    _f('max_pitch_rate', 35.0, '|IMU pitch rate| beyond which a sample is implausible: fault '
+       '[rad/s] (35 rad/s = 2000 deg/s gyro full scale)', 1.0, 1000.0),
+    _f('max_wheel_velocity', 200.0, '|wheel velocity| beyond which a sample is implausible: '
+       'fault [rad/s] (200 rad/s = 20 m/s on 0.1 m wheels)', 1.0, 10000.0),
     _f('fall_angle', math.radians(45.0), '|theta~| beyond which the robot has fallen: fault '
        '[rad] (keep it above the tail rest, about 0.63 rad, to start from the tail)', 0.05, 1.5),
     _f('imu_timeout', 0.05, 'IMU sample age that is a fault [s]', 0.004, 2.0),
