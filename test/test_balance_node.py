@@ -18,29 +18,25 @@ import threading
 import time
 import uuid
 
-# Isolate ROS from other runs before rclpy starts: own domain, localhost discovery only.
-os.environ.setdefault('ROS_DOMAIN_ID', str(10 + os.getpid() % 90))
-os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+import can
+from can.interfaces.virtual import VirtualBus
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import TwistStamped
+from nav_msgs.msg import Odometry
+import pytest
+from rcl_interfaces.srv import GetParameters, SetParameters
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter, parameter_value_to_python
+from rclpy.qos import qos_profile_sensor_data
+from sensor_msgs.msg import Imu, JointState
+from std_msgs.msg import Float64MultiArray
+from std_srvs.srv import SetBool
 
-import can  # noqa: E402
-from can.interfaces.virtual import VirtualBus  # noqa: E402
-from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
-from geometry_msgs.msg import TwistStamped  # noqa: E402
-from nav_msgs.msg import Odometry  # noqa: E402
-import pytest  # noqa: E402
-from rcl_interfaces.srv import GetParameters, SetParameters  # noqa: E402
-import rclpy  # noqa: E402
-from rclpy.context import Context  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
-from rclpy.node import Node  # noqa: E402
-from rclpy.parameter import Parameter, parameter_value_to_python  # noqa: E402
-from rclpy.qos import qos_profile_sensor_data  # noqa: E402
-from sensor_msgs.msg import Imu, JointState  # noqa: E402
-from std_msgs.msg import Float64MultiArray  # noqa: E402
-from std_srvs.srv import SetBool  # noqa: E402
-
-from wheelleg_balance.core.kinematics import FiveBarLeg  # noqa: E402
-from wheelleg_balance.nodes.balance_node import BalanceNode, STATE_FIELDS  # noqa: E402
+from wheelleg_balance.core.kinematics import FiveBarLeg
+from wheelleg_balance.nodes.balance_node import BalanceNode, STATE_FIELDS
+# Test plumbing only (polling, spinning); frames are still decoded here, independently.
+from wheelleg_balance.tools.fault_suite import Spinning, wait_for
 
 pytestmark = pytest.mark.ros
 
@@ -74,15 +70,6 @@ def mit_reply(motor_id, torque=0.0):
     """Encode a 6-byte MIT reply [id, p16, v12, t12] with p = v = 0."""
     t = int((min(max(torque, -T_MAX), T_MAX) + T_MAX) * 4095 / (2 * T_MAX))
     return bytes((motor_id, 0x7F, 0xFF, 0x7F, 0xF0 | (t >> 8), t & 0xFF))
-
-
-def wait_for(predicate, timeout, step=0.01):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if predicate():
-            return True
-        time.sleep(step)
-    return predicate()
 
 
 class FakeMotors:
@@ -261,14 +248,6 @@ class Robot(Node):
                 if status.name == status_name:
                     return {kv.key: kv.value for kv in status.values}, status
         return None, None
-
-
-@pytest.fixture(scope='module')
-def context():
-    ctx = Context()
-    rclpy.init(context=ctx)
-    yield ctx
-    rclpy.try_shutdown(context=ctx)
 
 
 class Rig:
@@ -571,15 +550,7 @@ def test_signal_sends_zero_torque_then_exit_frames(context, signum):
     motor_bus = can.Bus(interface='udp_multicast', channel=group, port=port)
     motors = FakeMotors(motor_bus)
     robot = Robot(context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(robot)
-    running = True
-
-    def spin():
-        while running:
-            executor.spin_once(timeout_sec=0.05)
-    spinner = threading.Thread(target=spin, daemon=True)
-    spinner.start()
+    spinning = Spinning(context, (robot,))
     robot.start()
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(
         [str(REPO)] + [p for p in [os.environ.get('PYTHONPATH')] if p]))
@@ -601,9 +572,7 @@ def test_signal_sends_zero_torque_then_exit_frames(context, signum):
             proc.kill()
             proc.communicate()
         robot.stop()
-        running = False
-        spinner.join(2.0)
-        executor.shutdown()
+        spinning.stop()
         robot.destroy_node()
         time.sleep(0.1)
         motors.close()

@@ -14,35 +14,18 @@ Each test fails with the list of the scenario's checks that did not hold.
 import math
 
 import pytest
-import rclpy
-from rclpy.context import Context
 
-# Importing fault_suite isolates ROS (domain from the pid, localhost) before rclpy.init.
+# conftest.py isolates ROS (domain from the pid, localhost) and provides ``context``.
 from wheelleg_balance.tools import fault_suite as fs
 
 pytestmark = pytest.mark.ros
 
 
 @pytest.fixture(scope='module')
-def context():
-    ctx = Context()
-    rclpy.init(context=ctx)
-    yield ctx
-    rclpy.try_shutdown(context=ctx)
-
-
-@pytest.fixture(scope='module')
-def matrix(context):
-    bench = fs.Bench(context)
-    yield fs.FieldMatrix(bench)
-    bench.close()
-
-
-@pytest.fixture(scope='module')
-def leg_matrix(context):
-    bench = fs.Bench(context, **fs.LEG_PARAMS)
-    yield fs.FieldMatrix(bench)
-    bench.close()
+def matrices(context):
+    """Return a FieldMatrix by leg setting: False, no leg joints configured; True, leg joints."""
+    with fs.Bench(context) as bench, fs.Bench(context, **fs.LEG_PARAMS) as leg_bench:
+        yield {False: fs.FieldMatrix(bench), True: fs.FieldMatrix(leg_bench)}
 
 
 def assert_handled(out: fs.Outcome) -> fs.Outcome:
@@ -50,131 +33,66 @@ def assert_handled(out: fs.Outcome) -> fs.Outcome:
     return out
 
 
+def scenario_test(name):
+    """Return a test that runs fault_suite scenario ``name`` and asserts it was handled."""
+    def test(context):
+        assert_handled(fs.SCENARIOS[name](context))
+    return test
+
+
+def matrix_test(name):
+    """Return a test that runs field matrix ``name`` of fault_suite.MATRICES (every case)."""
+    kind, cases, legs = fs.MATRICES[name]
+
+    def test(matrices):
+        assert_handled(matrices[legs].outcome(name, kind, cases))
+    return test
+
+
 # ------------------------------------------------------------------------------ sensors
 
-def test_imu_silent_gives_zero_torque_within_imu_timeout(context):
-    assert_handled(fs.scenario_imu_silent(context))   # and not before the timeout
-
-
-def test_imu_frozen_with_repeated_stamp_counts_as_stale(context):
-    assert_handled(fs.scenario_imu_frozen(context))
-
-
-def test_imu_nan_orientation_faults_at_the_next_tick(context):
-    assert_handled(fs.scenario_imu_nan(context))
-
-
-def test_imu_inf_pitch_rate_faults_at_the_next_tick(context):
-    assert_handled(fs.scenario_imu_rate_inf(context))
-
-
-def test_non_unit_quaternion_faults(context):
-    assert_handled(fs.scenario_quaternion_not_unit(context))
-
-
-def _matrix_outcome(m, name):
-    kind, cases, _ = fs.MATRICES[name]
-    return m.outcome(name, kind, cases)
-
-
-def test_imu_non_finite_value_in_every_field(matrix):
-    assert_handled(_matrix_outcome(matrix, 'imu_fields_non_finite'))
-
-
-def test_imu_absurd_finite_value_in_every_field(matrix):
-    assert_handled(_matrix_outcome(matrix, 'imu_fields_absurd'))
-
-
-def test_wheel_velocity_nan_faults_at_the_next_tick(context):
-    assert_handled(fs.scenario_wheel_velocity_nan(context))
-
-
-def test_joint_states_non_finite_value_in_every_field(matrix):
-    assert_handled(_matrix_outcome(matrix, 'joint_fields_non_finite'))
-
-
-def test_joint_states_absurd_finite_value_in_every_field(matrix):
-    assert_handled(_matrix_outcome(matrix, 'joint_fields_absurd'))
-
-
-def test_wheel_joints_missing_is_stale_joint_states(context):
-    assert_handled(fs.scenario_wheels_missing(context))
-
-
-def test_leg_angles_out_of_five_bar_reach_fault(context):
-    assert_handled(fs.scenario_leg_out_of_reach(context))
-
-
-def test_leg_angles_bad_values_fault(leg_matrix):
-    assert_handled(_matrix_outcome(leg_matrix, 'leg_fields'))
-
+# And not before the timeout.
+test_imu_silent_gives_zero_torque_within_imu_timeout = scenario_test('imu_silent')
+test_imu_frozen_with_repeated_stamp_counts_as_stale = scenario_test('imu_frozen')
+test_imu_nan_orientation_faults_at_the_next_tick = scenario_test('imu_nan')
+test_imu_inf_pitch_rate_faults_at_the_next_tick = scenario_test('imu_rate_inf')
+test_non_unit_quaternion_faults = scenario_test('quaternion_not_unit')
+test_imu_non_finite_value_in_every_field = matrix_test('imu_fields_non_finite')
+test_imu_absurd_finite_value_in_every_field = matrix_test('imu_fields_absurd')
+test_wheel_velocity_nan_faults_at_the_next_tick = scenario_test('wheel_velocity_nan')
+test_joint_states_non_finite_value_in_every_field = matrix_test('joint_fields_non_finite')
+test_joint_states_absurd_finite_value_in_every_field = matrix_test('joint_fields_absurd')
+test_wheel_joints_missing_is_stale_joint_states = scenario_test('wheel_joints_missing')
+test_leg_angles_out_of_five_bar_reach_fault = scenario_test('leg_out_of_reach')
+test_leg_angles_bad_values_fault = matrix_test('leg_fields')
 
 # ------------------------------------------------------------------------------ cmd_vel
 
-def test_cmd_vel_non_finite_dropped_and_absurd_limited(context):
-    assert_handled(fs.scenario_cmd_vel_invalid(context))
-
-
-def test_cmd_vel_bad_value_in_every_field(matrix):
-    assert_handled(_matrix_outcome(matrix, 'cmd_vel_fields'))
-
-
-def test_cmd_vel_stamped_in_the_past_still_times_out(context):
-    assert_handled(fs.scenario_cmd_vel_stale(context))
-
-
-def test_cmd_vel_stamped_in_the_future_still_times_out(context):
-    assert_handled(fs.scenario_cmd_vel_future(context))
-
-
-def test_joy_bad_value_in_every_axis_gives_a_bounded_command(context):
-    assert_handled(fs.scenario_joy_fields(context))
-
+test_cmd_vel_non_finite_dropped_and_absurd_limited = scenario_test('cmd_vel_invalid')
+test_cmd_vel_bad_value_in_every_field = matrix_test('cmd_vel_fields')
+test_cmd_vel_stamped_in_the_past_still_times_out = scenario_test('cmd_vel_stale')
+test_cmd_vel_stamped_in_the_future_still_times_out = scenario_test('cmd_vel_future')
+test_joy_bad_value_in_every_axis_gives_a_bounded_command = scenario_test('joy_fields')
 
 # ---------------------------------------------------------------------------------- CAN
 
-def test_silent_motor_gives_zero_torque_within_motor_timeout(context):
-    assert_handled(fs.scenario_motor_silent(context))
-
-
-def test_reply_from_unknown_id_does_not_keep_a_motor_alive(context):
-    assert_handled(fs.scenario_unknown_reply_id(context))
-
-
-def test_replies_from_a_stranger_are_ignored(context):
-    assert_handled(fs.scenario_stranger_replies(context))
-
-
-def test_full_tx_queue_faults_and_sends_only_zero_torque_after(context):
-    assert_handled(fs.scenario_tx_queue_full(context))
-
-
-def test_bus_off_faults_and_sends_only_zero_torque_after(context):
-    assert_handled(fs.scenario_bus_off(context))
-
-
-def test_error_frame_storm_does_not_stop_balancing(context):
-    assert_handled(fs.scenario_error_frame_storm(context))
-
+test_silent_motor_gives_zero_torque_within_motor_timeout = scenario_test('motor_silent')
+test_reply_from_unknown_id_does_not_keep_a_motor_alive = scenario_test('reply_unknown_id')
+test_replies_from_a_stranger_are_ignored = scenario_test('stranger_replies')
+test_full_tx_queue_faults_and_sends_only_zero_torque_after = scenario_test('can_tx_queue_full')
+test_bus_off_faults_and_sends_only_zero_torque_after = scenario_test('can_bus_off')
+test_error_frame_storm_does_not_stop_balancing = scenario_test('error_frame_storm')
 
 # --------------------------------------------------------------------------------- falls
 
-def test_imu_past_fall_angle_forward_faults_at_the_next_tick(context):
-    assert_handled(fs.scenario_fall_forward(context))
-
-
-def test_imu_past_fall_angle_backward_faults_at_the_next_tick(context):
-    assert_handled(fs.scenario_fall_backward(context))
-
-
-def test_push_past_fall_angle_on_sim_node_ends_at_rest_without_torque(context):
-    assert_handled(fs.scenario_sim_node_push(context))
-
+test_imu_past_fall_angle_forward_faults_at_the_next_tick = scenario_test('fall_forward')
+test_imu_past_fall_angle_backward_faults_at_the_next_tick = scenario_test('fall_backward')
+test_push_past_fall_angle_on_sim_node_ends_at_rest_without_torque = \
+    scenario_test('push_fall_sim_node')
 
 # ---------------------------------------------------------------------- parameters, switch
 
-def test_bad_parameters_are_refused_and_nothing_changes(context):
-    assert_handled(fs.scenario_bad_parameters(context))
+test_bad_parameters_are_refused_and_nothing_changes = scenario_test('bad_parameters')
 
 
 def test_controller_switch_at_full_speed_is_bumpless(context):
@@ -186,8 +104,7 @@ def test_controller_switch_at_full_speed_is_bumpless(context):
 
 # ---------------------------------------------------------------------------- recovery
 
-def test_recovery_only_by_explicit_rearm_while_on_the_tail(context):
-    assert_handled(fs.scenario_recovery_needs_rearm(context))
+test_recovery_only_by_explicit_rearm_while_on_the_tail = scenario_test('recovery_rearm')
 
 
 LATCH_CAUSES = ('imu_stale', 'non_finite', 'fall', 'motor_silent', 'can_send')
@@ -195,9 +112,8 @@ LATCH_CAUSES = ('imu_stale', 'non_finite', 'fall', 'motor_silent', 'can_send')
 
 @pytest.fixture(scope='module')
 def auto_arm_bench(context):
-    bench = fs.Bench(context, auto_arm=True)
-    yield bench
-    bench.close()
+    with fs.Bench(context, auto_arm=True) as bench:
+        yield bench
 
 
 @pytest.mark.parametrize('cause', LATCH_CAUSES)

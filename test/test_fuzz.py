@@ -17,8 +17,6 @@ import os
 
 from hypothesis import given, HealthCheck, settings, strategies as st
 import pytest
-import rclpy
-from rclpy.context import Context
 from rclpy.exceptions import ParameterNotDeclaredException
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import Joy
@@ -27,7 +25,6 @@ from wheelleg_balance.core.estimation import pitch_from_quaternion
 from wheelleg_balance.core.protocols.mit import MitCommand
 from wheelleg_balance.nodes.params import SPECS
 from wheelleg_balance.nodes.teleop_node import TeleopNode
-# Importing fault_suite isolates ROS (domain from the pid, localhost) before rclpy.init.
 from wheelleg_balance.tools import fault_suite as fs
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
@@ -43,26 +40,17 @@ any_float = st.floats(allow_nan=True, allow_infinity=True)
 small = st.floats(-2.0, 2.0)
 
 
-@pytest.fixture(scope='module')
-def context():
-    ctx = Context()
-    rclpy.init(context=ctx)
-    yield ctx
-    rclpy.try_shutdown(context=ctx)
-
-
+# ``context`` (and ROS isolation) comes from conftest.py.
 @pytest.fixture(scope='module')
 def bench(context):
-    b = fs.Bench(context)
-    yield b
-    b.close()
+    with fs.Bench(context) as b:
+        yield b
 
 
 @pytest.fixture(scope='module')
 def leg_bench(context):
-    b = fs.Bench(context, **fs.LEG_PARAMS)
-    yield b
-    b.close()
+    with fs.Bench(context, **fs.LEG_PARAMS) as b:
+        yield b
 
 
 def check_frames(frames, limit=MAX_TORQUE):
@@ -87,7 +75,7 @@ def assert_fault_now(b, frames):
 
 NOMINAL_IMU = fs.make_imu(0.0)
 NOMINAL_JOINTS = fs.make_joints()
-NOMINAL_LEG_JOINTS = fs.make_joints(legs=(0.25, 0.25, 0.25, 0.25))
+NOMINAL_LEG_JOINTS = fs.make_joints(legs=fs.NOMINAL_LEGS)
 
 
 def balancing(b, legs=False):
@@ -221,18 +209,10 @@ def test_fuzz_cmd_vel(bench, msg):
 
 # ------------------------------------------------------------------------------------ Joy
 
-class _Recorder:
-    def __init__(self):
-        self.msgs = []
-
-    def publish(self, msg):
-        self.msgs.append(msg)
-
-
 @pytest.fixture(scope='module')
 def teleop(context):
     node = TeleopNode(context=context, namespace=fs.unique_namespace())
-    node._pub = _Recorder()   # capture cmd_vel instead of publishing it
+    node._pub = fs.Captured()   # capture cmd_vel instead of publishing it
     yield node
     node.destroy_node()
 

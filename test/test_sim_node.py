@@ -11,22 +11,19 @@ import time
 
 import can
 import pytest
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import Imu, JointState
+from std_msgs.msg import Float64MultiArray
+
+from wheelleg_balance.core.protocols.mit import MitProtocol
+from wheelleg_balance.nodes.sim_node import SimNode
+# The polling helper of all the ROS tests (test/conftest.py says why it lives there).
+from wheelleg_balance.tools.fault_suite import wait_for
 
 pytestmark = pytest.mark.ros
-
-# Isolate DDS traffic of this run before rclpy initializes.
-os.environ['ROS_DOMAIN_ID'] = str(10 + os.getpid() % 90)
-os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-
-import rclpy  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
-from rclpy.parameter import Parameter  # noqa: E402
-from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
-from sensor_msgs.msg import Imu, JointState  # noqa: E402
-from std_msgs.msg import Float64MultiArray  # noqa: E402
-
-from wheelleg_balance.core.protocols.mit import MitProtocol  # noqa: E402
-from wheelleg_balance.nodes.sim_node import SimNode  # noqa: E402
 
 CHANNEL = 'test_sim_node_%d' % os.getpid()
 PROTOCOL = MitProtocol()
@@ -60,14 +57,12 @@ class Listener:
 
 
 @pytest.fixture(scope='module')
-def system():
+def system(context):
     # The listener shares this interpreter with the node (in its own process, sim_node's loop
     # thread has the GIL to itself): hand the GIL over sooner than the default 5 ms so the
     # loop thread is not held up by the listener's callbacks.
     switch_interval = sys.getswitchinterval()
     sys.setswitchinterval(0.0005)
-    context = rclpy.Context()
-    rclpy.init(context=context)
     node = SimNode(context=context, parameter_overrides=[
         Parameter('can.interface', value='virtual'),
         Parameter('can.channel', value=CHANNEL),
@@ -89,7 +84,6 @@ def system():
         executor.shutdown()
         listener.node.destroy_node()
         node.destroy_node()
-        rclpy.shutdown(context=context)
         spinner.join(timeout=2.0)
         sys.setswitchinterval(switch_interval)
 
@@ -110,18 +104,10 @@ def _exchange(bus, frame, timeout=0.5):
     return None
 
 
-def _wait_for(predicate, timeout=5.0):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if predicate():
-            return True
-        time.sleep(0.01)
-    return False
-
-
 def test_publishes_imu_and_joint_states_at_500_hz(system):
     node, listener, _ = system
-    assert _wait_for(lambda: len(listener.imu_times) > 50 and len(listener.joint_times) > 50)
+    assert wait_for(lambda: len(listener.imu_times) > 50 and len(listener.joint_times) > 50,
+                    5.0)
     time.sleep(0.3)  # past discovery and start-up
     t0 = time.monotonic()
     k0 = node.ticks

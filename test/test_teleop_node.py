@@ -17,37 +17,26 @@ import sys
 import threading
 import time
 
-# Isolate ROS from other runs before rclpy starts: own domain, localhost discovery only.
-os.environ.setdefault('ROS_DOMAIN_ID', str(10 + os.getpid() % 90))
-os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+from geometry_msgs.msg import Twist, TwistStamped
+import pytest
+from rcl_interfaces.srv import SetParameters
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import Joy
 
-from geometry_msgs.msg import Twist, TwistStamped  # noqa: E402
-import pytest  # noqa: E402
-from rcl_interfaces.srv import SetParameters  # noqa: E402
-import rclpy  # noqa: E402
-from rclpy.context import Context  # noqa: E402
-from rclpy.executors import MultiThreadedExecutor  # noqa: E402
-from rclpy.node import Node  # noqa: E402
-from rclpy.parameter import Parameter  # noqa: E402
-from sensor_msgs.msg import Joy  # noqa: E402
-
-from wheelleg_balance.core.teleop import TeleopConfig  # noqa: E402
-from wheelleg_balance.nodes.teleop_node import field_name, TeleopNode  # noqa: E402
-import yaml  # noqa: E402 -- after wheelleg_balance: google order sorts it as third party
+from wheelleg_balance.core.teleop import TeleopConfig
+from wheelleg_balance.nodes.teleop_node import field_name, TeleopNode
+# The polling helper of all the ROS tests (test/conftest.py says why it lives there).
+from wheelleg_balance.tools.fault_suite import wait_for
+import yaml  # after wheelleg_balance: google order sorts it as third party
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 CONFIGS = ('teleop_xbox.yaml', 'teleop_ps4.yaml')
 ENABLE, TURBO = 9, 10   # the node's defaults (SDL LEFTSHOULDER, RIGHTSHOULDER)
 AX_X, AX_YAW = 1, 2
-
-
-def wait_for(predicate, timeout, step=0.01):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if predicate():
-            return True
-        time.sleep(step)
-    return predicate()
 
 
 def joy_msg(x=0.0, yaw=0.0, enable=False, turbo=False):

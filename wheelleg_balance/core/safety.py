@@ -36,7 +36,8 @@ CAN_SEND = 'can_send'
 INTERNAL = 'internal_error'
 
 #: Every fault code, in the order the checks run.
-FAULT_CODES = (IMU_STALE, JOINT_STATES_STALE, NON_FINITE, IMPLAUSIBLE, FALL, MOTOR_SILENT, CAN_SEND, INTERNAL)
+FAULT_CODES = (IMU_STALE, JOINT_STATES_STALE, NON_FINITE, IMPLAUSIBLE, FALL, MOTOR_SILENT,
+               CAN_SEND, INTERNAL)
 
 
 class Mode(enum.IntEnum):

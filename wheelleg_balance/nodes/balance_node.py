@@ -3,14 +3,21 @@ balance_node: the 2 ms balance loop of the real robot (interface: DESIGN.md sect
 
 Threads:
 
-- the ROS executor (main thread): subscription callbacks only store the newest sample (a tuple
-  assignment), plus the ~/arm service, parameter validation and /diagnostics;
-- the control thread: sleeps to absolute deadlines (time.monotonic_ns; a late tick does not push
-  later ones, it skips to the next deadline and counts the overrun), reads the newest samples,
+- the control thread ("balance_control"): sleeps to absolute deadlines (time.monotonic_ns; a late
+  tick does not push later ones: up to MAX_CATCH_UP missed deadlines are served at once, a
+  longer stall is skipped and counted as overruns). At each tick it takes the newest ``imu`` and
+  ``joint_states`` samples straight from their subscriptions, reads the motors' CAN replies,
   runs the safety supervisor and BalanceCore.step, sends one torque command per wheel motor and
   publishes ~/state and odom at decimated rates. Mode changes (arm, disarm, fault) and parameter
   changes are applied by this thread at the start of a tick, so the core is never shared;
-- python-can's Notifier thread: decodes the motors' replies (nodes/can_io.py).
+- the ROS executor (main thread): ``cmd_vel`` (its callback stores one tuple), the ~/arm
+  service, parameter validation and /diagnostics.
+
+Why the sensors are not read by the executor: rclpy's executor costs about 0.25 ms of Python per
+wake-up, 1000 wake-ups a second for two 500 Hz topics; the control thread then waits for the GIL
+and misses deadlines (docs/benchmarks.md). Their subscriptions live on a second node,
+``<name>_sensors``, that no executor spins; topic names are resolved by this node first, so its
+remappings apply.
 
 Modes (core/safety.py): DISARMED sends no frames (the motors were left in rest mode by the exit
 frames), BALANCING sends the controller's torques, FAULT sends zero torque every tick until an
@@ -18,6 +25,7 @@ explicit re-arm or disarm. See docs/balance_node.md.
 """
 from array import array
 import math
+import signal
 import sys
 import threading
 import time
@@ -30,7 +38,8 @@ from nav_msgs.msg import Odometry
 import numpy as np
 from rcl_interfaces.msg import SetParametersResult
 import rclpy
-from rclpy.executors import ExternalShutdownException
+from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import Imu, JointState
@@ -39,6 +48,7 @@ from std_srvs.srv import SetBool
 
 from . import params as P
 from .can_io import CanIo, open_bus
+from ..core import realtime
 from ..core.actuation import check_direction, motor_torque
 from ..core.estimation import pitch_from_quaternion, pitch_rate_from_gyro, WheelOdometry
 from ..core.kinematics import FiveBarLeg
@@ -46,7 +56,6 @@ from ..core.params import IdaPbcGains, RobotParams
 from ..core.pipeline import BalanceCore, CONTROLLER_NAMES, CoreConfig, Measurement, Reference
 from ..core.protocols.dji import DjiC620Protocol
 from ..core.protocols.mit import MitProtocol
-from ..core.realtime import set_fifo_priority
 from ..core.safety import Mode, ReferenceShaper, SafetyLimits, SafetySupervisor, SensorSnapshot
 
 #: Layout of ~/state (std_msgs/Float64MultiArray), documented in docs/balance_node.md.
@@ -56,6 +65,14 @@ _S = {name: i for i, name in enumerate(STATE_FIELDS)}
 
 #: Samples of the period statistics ring (about 2 s at 500 Hz).
 TIMING_WINDOW = 1024
+
+#: Missed deadlines the loop serves late, back to back, before it gives up and skips a stall.
+#: Catching up keeps the rate at 500 Hz and the observer's 2 ms time base (it is discretized
+#: per update); a stall longer than this is skipped rather than answered by a long burst.
+MAX_CATCH_UP = 5
+
+#: Messages taken from one sensor subscription per tick at most (its queue holds 5).
+MAX_TAKES = 16
 
 _IDA_PBC_PARAMS = ('ida_pbc.k', 'ida_pbc.m22_0', 'ida_pbc.k_v', 'ida_pbc.P')
 
@@ -157,19 +174,26 @@ class BalanceNode(Node):
 
         self._state_every = self._decimation(v['state_publish_rate'])
         self._odom_every = self._decimation(v['odom_publish_rate'])
-        self._state_pub = self.create_publisher(Float64MultiArray, '~/state', 10)
+        self._state_pub = self._publisher(Float64MultiArray, '~/state')
         self._state_msg = Float64MultiArray()
         self._state_msg.layout.dim = [MultiArrayDimension(
             label=','.join(STATE_FIELDS), size=len(STATE_FIELDS), stride=len(STATE_FIELDS))]
         self._state = array('d', [0.0] * len(STATE_FIELDS))
-        self._odom_pub = self.create_publisher(Odometry, 'odom', 10)
+        self._odom_pub = self._publisher(Odometry, 'odom')
         self._odom_msg = self._make_odom(v)
-        self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
-        self.create_subscription(Imu, 'imu', self._on_imu, qos_profile_sensor_data)
-        self.create_subscription(JointState, 'joint_states', self._on_joint_states,
-                                 qos_profile_sensor_data)
+        self._diag_pub = self._publisher(DiagnosticArray, '/diagnostics')
         self.create_subscription(TwistStamped, 'cmd_vel', self._on_cmd_vel,
-                                 qos_profile_sensor_data)
+                                 qos_profile_sensor_data, event_callbacks=_no_sub_events())
+        self._sensor_node = Node(self.get_name() + '_sensors', context=self.context,
+                                 namespace=self.get_namespace(), use_global_arguments=False,
+                                 enable_rosout=False, start_parameter_services=False)
+        self._sensor_subs = [
+            (self._sensor_node.create_subscription(
+                msg_type, self.resolve_topic_name(topic), callback, qos_profile_sensor_data,
+                event_callbacks=_no_sub_events()), callback)
+            for msg_type, topic, callback in ((Imu, 'imu', self._on_imu),
+                                              (JointState, 'joint_states',
+                                               self._on_joint_states))]
         self.create_service(SetBool, '~/arm', self._on_arm)
         self._diag_period = 1.0 / v['diagnostics_rate']
         self._diag_last = -math.inf
@@ -179,14 +203,15 @@ class BalanceNode(Node):
 
         self._stop = threading.Event()
         self._shut_down = False
+        self._thread: Optional[threading.Thread] = None
         if bus is None:
             try:
                 bus = open_bus(v['can.interface'], v['can.channel'], v['can.udp_port'])
             except (can.CanError, OSError, ValueError, ImportError) as exc:
+                self._sensor_node.destroy_node()
                 raise RuntimeError('cannot open CAN bus %s: %s' % (self._hardware_id, exc))
         self.can = CanIo(bus, self.protocol, self.motor_ids, v['can.send_timeout'])
         try:
-            self.can.start()
             # Start from a known state: a crashed run may have left the motors in motor mode.
             self._send_stop_frames(time.monotonic())
             # The GIL is handed over every 5 ms by default: far too late for a 2 ms loop when
@@ -195,14 +220,16 @@ class BalanceNode(Node):
             self._thread = threading.Thread(target=self._run, name='balance_control',
                                             daemon=True)
             self._thread.start()
+            self.get_logger().info(
+                'balance_node: controller %s, CAN %s (%s, motors %d/%d), %.1f ms loop, %s' % (
+                    v['controller'], self._hardware_id, v['can.protocol'], self.left_id,
+                    self.right_id, 1e3 * self.period,
+                    'auto_arm' if self._auto_arm else 'call ~/arm to balance'))
         except BaseException:
-            self.can.close()
+            # Whatever stopped the start (an error, a signal), the motors end at zero torque.
+            self.shutdown()
+            self._sensor_node.destroy_node()
             raise
-        self.get_logger().info(
-            'balance_node: controller %s, CAN %s (%s, motors %d/%d), %.1f ms loop, %s' % (
-                v['controller'], self._hardware_id, v['can.protocol'], self.left_id,
-                self.right_id, 1e3 * self.period,
-                'auto_arm' if self._auto_arm else 'call ~/arm to balance'))
 
     # ------------------------------------------------------------------------------- set-up
 
@@ -210,6 +237,13 @@ class BalanceNode(Node):
     def _ida_pbc_gains(v) -> IdaPbcGains:
         return IdaPbcGains(k=v['ida_pbc.k'], m22_0=v['ida_pbc.m22_0'], k_v=v['ida_pbc.k_v'],
                            P=v['ida_pbc.P'])
+
+    def _publisher(self, msg_type, topic: str):
+        # Without the default QoS event handlers: each is a waitable the executor re-adds to its
+        # wait set at every wake-up (docs/benchmarks.md).
+        return self.create_publisher(
+            msg_type, topic, 10,
+            event_callbacks=PublisherEventCallbacks(use_default_callbacks=False))
 
     def _decimation(self, rate: float) -> int:
         """Ticks between publications at ``rate`` [Hz]; 0 = never."""
@@ -245,7 +279,7 @@ class BalanceNode(Node):
             msg.twist.covariance[7 * k] = c
         return msg
 
-    # -------------------------------------------------------------- executor-side callbacks
+    # ---------------------------------------------- subscription callbacks (either thread)
 
     def _on_imu(self, msg: Imu) -> None:
         o = msg.orientation
@@ -317,14 +351,39 @@ class BalanceNode(Node):
     def _init_timing(self) -> None:
         self._periods = array('d', [0.0] * TIMING_WINDOW)
         self._computes = array('d', [0.0] * TIMING_WINDOW)
-        self._overruns = 0
+        self._overruns = 0      # deadlines skipped (never served)
+        self._caught_up = 0     # deadlines served late by catching up
         self._late = 0
         self._tick_errors = 0
 
+    def _apply_realtime(self) -> None:
+        """Apply the real-time options from the control thread; refusals are logged, not fatal."""
+        v = self._values
+        results = {'thread_name': realtime.name_thread('balance_control')}
+        cpu = v['realtime_cpu']
+        results.update(realtime.apply(v['realtime_priority'], () if cpu < 0 else (cpu,), False))
+        if v['lock_memory']:
+            # MCL_ONFAULT: thread stacks and DDS pools are reserved large but touched little.
+            results['memory_lock'] = realtime.lock_memory(future=True, on_fault=True)
+        self._realtime = '; '.join(message for _, message in results.values())
+        for name in ('priority', 'affinity', 'memory_lock'):
+            ok, message = results[name]
+            if not ok:
+                self.get_logger().warning('real-time option refused: %s' % message)
+
+    def _take_samples(self) -> None:
+        """Hand every imu / joint_states message received since the last tick to its callback."""
+        for sub, callback in self._sensor_subs:
+            handle, msg_type = sub.handle, sub.msg_type
+            with handle:  # what rclpy's executor does to take a message
+                for _ in range(MAX_TAKES):
+                    taken = handle.take_message(msg_type, False)
+                    if taken is None:
+                        break
+                    callback(taken[0])
+
     def _run(self) -> None:
-        ok, self._realtime = set_fifo_priority(self._values['realtime_priority'])
-        if not ok:
-            self.get_logger().warning('realtime_priority: %s' % self._realtime)
+        self._apply_realtime()
         period_ns = int(round(self.period * 1e9))
         late_ns = period_ns // 4
         deadline = time.monotonic_ns() + period_ns
@@ -341,6 +400,9 @@ class BalanceNode(Node):
             if now - deadline > late_ns:
                 self._late += 1
             try:
+                if self.context.ok():  # after SIGINT/SIGTERM the subscriptions are gone
+                    self._take_samples()
+                self.can.poll()
                 self._tick(now)
             except Exception as exc:  # noqa: B902 -- a bug must not kill the loop: zero torque
                 self._tick_errors += 1
@@ -358,10 +420,12 @@ class BalanceNode(Node):
             self._tick_count += 1
             deadline += period_ns
             if end > deadline:
-                # Skip the deadlines already missed instead of catching up with a burst.
-                missed = (end - deadline) // period_ns + 1
-                self._overruns += missed
-                deadline += missed * period_ns
+                missed = (end - deadline) // period_ns + 1  # deadlines already passed
+                if missed > MAX_CATCH_UP:
+                    self._overruns += missed
+                    deadline += missed * period_ns
+                else:
+                    self._caught_up += 1  # the next tick runs at once, on its own deadline
 
     def _read_samples(self, now: float) -> SensorSnapshot:
         s = self._snapshot
@@ -521,6 +585,7 @@ class BalanceNode(Node):
         ticks = max(self._tick_count, 1)
         return {
             'ticks': self._tick_count, 'overruns': self._overruns,
+            'caught_up': self._caught_up,
             'late_share': self._late / ticks, 'tick_errors': self._tick_errors,
             'period_mean': float(np.mean(periods)),
             'period_p99': float(np.percentile(periods, 99)),
@@ -574,12 +639,15 @@ class BalanceNode(Node):
         loop = DiagnosticStatus(name='balance_node: control loop', hardware_id=self._hardware_id)
         loop.level = DiagnosticStatus.OK if t['late_share'] < 0.05 and not t['tick_errors'] \
             else DiagnosticStatus.WARN
-        loop.message = 'period mean %.3f ms, p99 %.3f ms, max %.3f ms, %d overruns' % (
-            1e3 * t['period_mean'], 1e3 * t['period_p99'], 1e3 * t['period_max'], t['overruns'])
+        loop.message = ('period mean %.3f ms, p99 %.3f ms, max %.3f ms, %d deadlines skipped, '
+                        '%d caught up' % (1e3 * t['period_mean'], 1e3 * t['period_p99'],
+                                          1e3 * t['period_max'], t['overruns'],
+                                          t['caught_up']))
         loop.values = _kv(
             period_target_ms=1e3 * self.period,
             period_mean_ms=1e3 * t['period_mean'], period_p99_ms=1e3 * t['period_p99'],
             period_max_ms=1e3 * t['period_max'], overruns=t['overruns'],
+            caught_up=t['caught_up'],
             late_share=t['late_share'], ticks=t['ticks'],
             compute_mean_ms=1e3 * t['compute_mean'], compute_p99_ms=1e3 * t['compute_p99'],
             compute_max_ms=1e3 * t['compute_max'], tick_errors=t['tick_errors'],
@@ -626,10 +694,22 @@ class BalanceNode(Node):
             return
         self._shut_down = True
         self._stop.set()
-        self._thread.join(timeout=2.0)
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
         self.supervisor.disarm()
         self._send_stop_frames(time.monotonic())
         self.can.close()
+
+    def destroy_node(self):
+        """Shut down (stop the loop, zero torque, close the bus), then destroy both nodes."""
+        self.shutdown()
+        self._sensor_node.destroy_node()
+        return super().destroy_node()
+
+
+def _no_sub_events() -> SubscriptionEventCallbacks:
+    # Without the default QoS event handlers (see BalanceNode._publisher).
+    return SubscriptionEventCallbacks(use_default_callbacks=False)
 
 
 def _kv(**values):
@@ -642,14 +722,26 @@ def _fmt(v) -> str:
     return str(v)
 
 
+def _ignore_signal(signum, frame) -> None:
+    """Let a signal do nothing in Python; rclpy's own handler has shut the context down."""
+
+
 def main(args=None) -> int:
     """Run balance_node until SIGINT/SIGTERM; exit with zero torque and the motors disabled."""
+    # SIGINT and SIGTERM only shut rclpy down (its handlers chain to these): no
+    # KeyboardInterrupt may land in the constructor or the stop path and skip the exit frames.
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, _ignore_signal)
     rclpy.init(args=args)
+    # Made before the node: the control thread balances from the start, so a signal can come
+    # before spinning begins, and an executor cannot be created on a context already shut down.
+    executor = SingleThreadedExecutor()
     node = None
     rc = 0
     try:
         node = BalanceNode()
-        rclpy.spin(node)
+        executor.add_node(node)
+        executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except Exception as exc:  # noqa: B902 -- one clear line, no traceback
@@ -658,8 +750,8 @@ def main(args=None) -> int:
             rc = 1
     finally:
         if node is not None:
-            node.shutdown()
-            node.destroy_node()
+            node.destroy_node()  # stops the loop, zero torque, exit frames, closes the bus
+        executor.shutdown()
         rclpy.try_shutdown()
     return rc
 

@@ -5,8 +5,11 @@ Sending is synchronous from the control thread, one ``bus.send`` with a short ti
 (never the kernel's periodic send: it would keep sending the last torque if Python stalled).
 A failed send (``can.CanError``, e.g. the ``CanOperationError`` of a full socketcan TX queue, or
 an OSError) is returned as a message for the safety supervisor, never raised.
-Replies arrive on a ``can.Notifier`` thread; the listener decodes them with the protocol and
-keeps, per motor, the monotonic time of the last reply, a reply counter and the last feedback.
+Replies are read by the control thread too: ``poll()`` at the start of each tick drains
+``bus.recv(timeout=0)`` and decodes them with the protocol, keeping, per motor, the monotonic
+time of the last reply, a reply counter and the last feedback. No receive thread: a python-can
+Notifier woke 1000-2000 times a second and competed with the control thread for the GIL
+(docs/benchmarks.md). A reply is thus known to one tick (2 ms), well inside ``motor_timeout``.
 """
 import threading
 import time
@@ -31,7 +34,7 @@ def open_bus(interface: str, channel: str, udp_port: int = 43113) -> can.BusABC:
 
 
 class MotorStatus:
-    """What is known about one motor from its replies (written by the notifier thread)."""
+    """What is known about one motor from its replies (written by ``CanIo.poll``)."""
 
     __slots__ = ('motor_id', 'last_reply', 'replies', 'feedback')
 
@@ -42,22 +45,9 @@ class MotorStatus:
         self.feedback: Optional[MotorFeedback] = None
 
 
-class _ReplyListener(can.Listener):
-    """Decodes every received frame; keeps the notifier thread alive through bus errors."""
-
-    def __init__(self, io: 'CanIo'):
-        self._io = io
-
-    def on_message_received(self, msg: can.Message) -> None:
-        self._io._on_frame(msg)
-
-    def on_error(self, exc: Exception) -> None:
-        self._io.rx_errors += 1
-        self._io.last_rx_error = str(exc)
-        time.sleep(0.01)  # a bus that keeps failing must not spin this thread
-
-    def stop(self) -> None:
-        """Nothing to release."""
+#: Frames one poll reads at most. A 1 Mbit/s bus carries at most about 18 frames per 2 ms tick;
+#: udp_multicast also loops the node's own frames back.
+MAX_FRAMES_PER_POLL = 64
 
 
 class CanIo:
@@ -85,12 +75,31 @@ class CanIo:
         self.last_tx_error = ''
         self.last_rx_error = ''
         self._lock = threading.Lock()
-        self._notifier: Optional[can.Notifier] = None
         self._closed = False
 
-    def start(self) -> None:
-        """Start receiving replies (a can.Notifier thread)."""
-        self._notifier = can.Notifier(self.bus, [_ReplyListener(self)], timeout=0.1)
+    def poll(self, max_frames: int = MAX_FRAMES_PER_POLL) -> int:
+        """
+        Decode the frames received since the last call; return how many were read.
+
+        Never blocks and never raises: a receive error is counted (rx_errors, last_rx_error)
+        and ends this poll. At most ``max_frames`` are read, so an error-frame storm cannot
+        hold the tick; the rest wait for the next one.
+        """
+        n = 0
+        with self._lock:
+            if self._closed:
+                return 0
+            try:
+                while n < max_frames:
+                    msg = self.bus.recv(timeout=0.0)
+                    if msg is None:
+                        break
+                    n += 1
+                    self._on_frame(msg)
+            except (can.CanError, OSError, ValueError) as exc:
+                self.rx_errors += 1
+                self.last_rx_error = '%s: %s' % (type(exc).__name__, exc)
+        return n
 
     def _on_frame(self, msg: can.Message) -> None:
         self.rx_frames += 1
@@ -128,16 +137,12 @@ class CanIo:
             return None
 
     def close(self) -> None:
-        """Stop the notifier and shut the bus down (idempotent, never raises)."""
+        """Shut the bus down (idempotent, never raises)."""
         with self._lock:
             if self._closed:
                 return
             self._closed = True
         try:
-            if self._notifier is not None:
-                self._notifier.stop(timeout=1.0)
-        finally:
-            try:
-                self.bus.shutdown()
-            except Exception:  # noqa: B902 -- closing must not fail the shutdown path
-                pass
+            self.bus.shutdown()
+        except Exception:  # noqa: B902 -- closing must not fail the shutdown path
+            pass

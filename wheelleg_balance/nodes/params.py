@@ -179,6 +179,10 @@ SPECS = (
          'odom twist covariance diagonal (x, y, z, roll, pitch, yaw)', read_only=RO),
     Spec('realtime_priority', 0, 'SCHED_FIFO priority of the control thread (0: leave the '
          'scheduler alone; needs rtprio rights)', 0, 98, RO),
+    Spec('realtime_cpu', -1, 'CPU the control thread is pinned to (-1: no pinning)', -1, 1023,
+         RO),
+    Spec('lock_memory', False, 'lock the process in RAM (mlockall, MCL_ONFAULT) so no page '
+         'fault stalls the loop; needs CAP_IPC_LOCK or a memlock limit', read_only=RO),
 )
 
 SPEC_BY_NAME = {s.name: s for s in SPECS}

@@ -23,6 +23,7 @@ from geometry_msgs.msg import Twist, TwistStamped
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 SetParametersResult)
 import rclpy
+from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
@@ -138,6 +139,9 @@ class TeleopNode(Node):
             cmd = self._teleop.stop()
         if cmd is not None and self.context.ok():
             self._publish(*cmd)
+            # The process exits next: give the reliable publisher a moment to have the last
+            # word delivered (without this it was lost about one exit in three).
+            self._pub.wait_for_all_acked(Duration(seconds=0.5))
 
     def _publish(self, x_dot: float, yaw_rate: float) -> None:
         twist = Twist()

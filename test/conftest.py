@@ -1,0 +1,37 @@
+"""
+What the ROS tests share: isolation from other runs and a module-scoped rclpy context.
+
+pytest loads this file before it imports any test module of this folder, so the isolation below
+is in place before a test module starts rclpy or a child process. test/ is not a package and
+test_packaging.py requires every import of a test file to be a declared dependency, so shared
+code reaches the tests as fixtures from here or from the package (polling:
+``wheelleg_balance.tools.fault_suite.wait_for``), never by importing a module of this folder.
+"""
+import os
+
+import pytest
+import rclpy
+from rclpy.context import Context
+
+
+def isolate_ros() -> None:
+    """
+    Keep this run's ROS traffic to itself: a domain from the pid, localhost discovery only.
+
+    setdefault: a domain the caller exported (scripts/test.sh does) is kept. Child processes
+    inherit both variables.
+    """
+    os.environ.setdefault('ROS_DOMAIN_ID', str(10 + os.getpid() % 90))
+    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+
+
+isolate_ros()
+
+
+@pytest.fixture(scope='module')
+def context():
+    """Return an initialized rclpy Context of the test module's own, shut down after it."""
+    ctx = Context()
+    rclpy.init(context=ctx)
+    yield ctx
+    rclpy.try_shutdown(context=ctx)

@@ -1,0 +1,307 @@
+"""
+The benchmark command and its helpers (no timing targets here: these machines are shared).
+
+The quick run checks the report's structure and that every figure is positive and finite; the
+statistics are checked on event series whose answer is known by construction; the real-time
+helpers must return a clean (ok, message) whatever the machine allows.
+"""
+import json
+import math
+import os
+import pathlib
+import subprocess
+import sys
+import threading
+
+import numpy as np
+import pytest
+
+from wheelleg_balance.core import realtime
+from wheelleg_balance.core.pipeline import CONTROLLER_NAMES
+from wheelleg_balance.tools import bench_profile, benchmark
+from wheelleg_balance.tools.bench_node import probe_latencies
+from wheelleg_balance.tools.bench_stats import period_stats, served_deadlines
+
+REPO = pathlib.Path(__file__).resolve().parents[1]
+MS = 1_000_000
+
+
+def _positive_finite(value) -> bool:
+    return isinstance(value, (int, float)) and math.isfinite(value) and value > 0
+
+
+# ------------------------------------------------------------------------------ quick run
+
+@pytest.fixture(scope='module')
+def quick_report(tmp_path_factory):
+    out = tmp_path_factory.mktemp('bench') / 'sub' / 'benchmark.json'
+    env = dict(os.environ)
+    env['PYTHONPATH'] = os.pathsep.join(p for p in (str(REPO), env.get('PYTHONPATH')) if p)
+    proc = subprocess.run(
+        [sys.executable, '-m', 'wheelleg_balance.tools.benchmark', '--quick',
+         '--parts', 'core,floor', '--output', str(out)],
+        env=env, capture_output=True, text=True, timeout=180)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    with open(out) as f:
+        return json.load(f), proc.stdout
+
+
+def test_quick_report_structure(quick_report):
+    report, stdout = quick_report
+    assert report['errors'] == {}
+    assert report['settings']['quick'] is True
+    assert report['settings']['parts'] == ['core', 'floor']
+    assert 'baseline' not in report and 'node' not in report
+    assert report['machine']['cpus'] >= 1
+    assert set(report['core']) == set(CONTROLLER_NAMES)
+    # The table names every controller and the floor.
+    for name in CONTROLLER_NAMES + ('floor',):
+        assert name in stdout
+
+
+def test_quick_core_figures(quick_report):
+    report, _ = quick_report
+    for name, core in report['core'].items():
+        assert core['n'] == 2000, name
+        for key in ('median_us', 'p99_us', 'max_us', 'cpu_p99_us'):
+            assert _positive_finite(core[key]), (name, key, core[key])
+        assert core['median_us'] <= core['p99_us'] <= core['max_us']
+        assert core['fell'] is False, name  # the timed ticks really balanced the robot
+    rows = {t['name']: t for t in report['targets']}
+    for name in CONTROLLER_NAMES:
+        row = rows['core p99 %s' % name]
+        assert row['value'] == report['core'][name]['p99_us']
+        assert row['pass'] == (row['value'] < 50.0)
+
+
+def test_quick_floor_figures(quick_report):
+    report, _ = quick_report
+    floor = report['floor']
+    for key in ('rate_hz', 'duration_s', 'period_median_ms', 'period_p99_ms', 'period_p999_ms',
+                'period_max_ms', 'cpu_percent', 'n', 'deadlines'):
+        assert _positive_finite(floor[key]), (key, floor[key])
+    assert floor['period_median_ms'] <= floor['period_p99_ms'] <= floor['period_p999_ms'] \
+        <= floor['period_max_ms']
+    for key in ('late_share', 'own_late_share'):
+        assert 0.0 <= floor[key] <= 1.0
+    assert floor['duration_s'] > 2.0  # --quick: 3 s
+
+
+# ---------------------------------------------------------------------------- statistics
+
+def test_perfect_grid():
+    t = np.arange(1000, dtype=np.int64) * 2 * MS + 123
+    s = period_stats(t)
+    assert s['rate_hz'] == pytest.approx(500.0)
+    assert s['period_p99_ms'] == pytest.approx(2.0)
+    assert s['late_share'] == 0.0
+    assert s['deadlines'] == 999
+
+
+def _wake_jitter(n, seed=0):
+    # On-time ticks wake 20..200 us after their deadline, as a sleeping loop does.
+    return np.random.default_rng(seed).integers(20_000, 200_000, n)
+
+
+def test_catch_up_loop_stall():
+    # A loop that catches up: tick 100 comes 5.3 ms late, the two after it 3.3 and 1.3 ms late
+    # (back-to-back), then it is on time again. Three deadlines missed by more than 1 ms.
+    t = np.arange(1000, dtype=np.int64) * 2 * MS + _wake_jitter(1000)
+    stall_end = t[100] + 5_300_000
+    for k in (100, 101, 102):
+        t[k] = stall_end + (k - 100) * 10_000
+    served, total = served_deadlines(t)
+    assert total - served == 3
+    s = period_stats(t)
+    assert s['period_max_ms'] == pytest.approx((t[100] - t[99]) / MS)
+    assert s['late_share'] == pytest.approx(3 / s['deadlines'])
+
+
+def test_skipping_loop_counts_skipped_deadlines():
+    # A loop that skips: 4 deadlines with no tick at all, every other tick on time.
+    grid = np.arange(1000, dtype=np.int64) * 2 * MS
+    t = np.delete(grid + _wake_jitter(1000), [300, 301, 302, 303])
+    s = period_stats(t)
+    assert s['missed_deadlines'] == 4
+    assert s['rate_hz'] == pytest.approx(995e9 / (t[-1] - t[0]))
+
+
+def test_late_threshold_and_phase():
+    # The grid's phase is not known from outside: a constant offset is a phase, nothing late.
+    base = np.arange(2000, dtype=np.int64) * 2 * MS + 777_777
+    assert period_stats(base + 1_400_000)['late_share'] == 0.0
+    # Ticks alternately on time and 1.5 ms late: no phase serves more than every other deadline.
+    jitter = np.where(np.arange(2000) % 2 == 0, 0, 1_500_000)
+    share = period_stats(base + jitter)['late_share']
+    assert share == pytest.approx(0.5, abs=0.01)
+
+
+def _probe_run(delay_ns, stall=None):
+    """Frames every 2 ms; each toggle's level shows in the first frame delay_ns after it."""
+    frames = np.arange(5000, dtype=np.int64) * 2 * MS
+    toggles = np.arange(10, 490, dtype=np.int64) * 20 * MS + 300_000  # between frames
+    levels = np.where(np.arange(toggles.size) % 2 == 0, 1, -1)
+    tau = np.zeros(frames.size)
+    for p, level in zip(toggles, levels):
+        tau[frames >= p + delay_ns] = 0.64 * level
+    if stall is not None:  # no frames at all in [stall[0], stall[1])
+        keep = (frames < stall[0]) | (frames >= stall[1])
+        frames, tau = frames[keep], tau[keep]
+    return toggles, levels, frames, tau
+
+
+def test_probe_latencies_recover_known_delay():
+    lat = probe_latencies(*_probe_run(1_500_000))
+    # Toggle at 20 k ms + 0.3 ms, new torque from 20 k ms + 1.8 ms: the frame at 20 k + 2 ms.
+    assert np.all(np.isfinite(lat))
+    assert np.allclose(lat, 1_700_000)
+
+
+def test_probe_lost_in_a_stall():
+    # The node sends nothing from just before toggle 100 until after toggle 101: probe 100's
+    # level never reaches the bus, it is lost; probe 101 is late by the rest of the stall.
+    toggles, levels, frames, tau = _probe_run(1_500_000)
+    stall = (toggles[100] - 1 * MS, toggles[101] + 5 * MS)
+    lat = probe_latencies(toggles, levels, *_probe_run(1_500_000, stall)[2:])
+    assert np.isinf(lat[100])
+    assert lat[101] == pytest.approx(5.7 * MS)
+    assert np.allclose(np.delete(lat, [100, 101]), 1_700_000)
+
+
+def test_probe_without_step_is_not_measured():
+    toggles, levels, frames, _ = _probe_run(1_500_000)
+    lat = probe_latencies(toggles, levels, frames, np.full(frames.size, 0.1))
+    assert np.all(np.isnan(lat))
+
+
+# ------------------------------------------------------------------------------ targets
+
+def _report(node_p99, node_late, floor_p99=4.0, floor_late=0.02, rate=500.0, cpu=20.0):
+    return {'core': {'lqr': {'p99_us': 20.0}},
+            'floor': {'period_p99_ms': floor_p99, 'late_share': floor_late},
+            'node': {'timing': {'rate_hz': rate, 'period_p99_ms': node_p99,
+                                'late_share': node_late}, 'cpu_percent': cpu,
+                     'node_mode': 'BALANCING', 'motors': {'1': {'balancing_share': 1.0},
+                                                          '2': {'balancing_share': 1.0}}}}
+
+
+def test_targets_against_the_floor_of_the_same_run():
+    rows = {t['name']: t['pass'] for t in benchmark.targets(_report(4.7, 0.023))}
+    assert all(rows.values()), rows
+    rows = {t['name']: t['pass'] for t in benchmark.targets(
+        _report(4.9, 0.025, rate=499.4, cpu=36.0))}
+    assert not rows['node period p99 <= 1.2 x floor']
+    assert not rows['node late share <= 1.2 x floor']
+    assert not rows['node rate within 0.1 %']
+    assert not rows['node CPU']
+    assert rows['core p99 lqr']
+    faulted = _report(4.7, 0.023)
+    faulted['node']['node_mode'] = 'FAULT'
+    rows = {t['name']: t['pass'] for t in benchmark.targets(faulted)}
+    assert not rows['node balanced throughout']
+
+
+def test_nan_never_passes():
+    rows = benchmark.targets({'core': {'lqr': {'p99_us': math.nan}}})
+    assert rows[0]['pass'] is False
+
+
+def test_parse_args_quick_and_parts():
+    args = benchmark.parse_args(['--quick'])
+    assert (args.duration, args.ticks) == (3.0, 2000)
+    assert args.parts == list(benchmark.PARTS)
+    args = benchmark.parse_args(['--parts', 'floor,core'])
+    assert (args.duration, args.ticks, args.parts) == (60.0, 20000, ['core', 'floor'])
+    assert args.output == os.path.join('output', 'benchmark.json')
+    with pytest.raises(SystemExit):
+        benchmark.parse_args(['--parts', 'core,gpu'])
+
+
+def test_profile_summary(tmp_path):
+    raw = tmp_path / 'raw.txt'
+    raw.write_text(
+        'thread (10): MainThread;spin (rclpy/__init__.py:247);wait (rclpy/executors.py:697) 6\n'
+        'thread (11): balance_control;_run (balance_node.py:329);_tick (balance_node.py:400)'
+        ';send (can_io.py:122) 3\n'
+        'thread (11): balance_control;_run (balance_node.py:329);_tick (balance_node.py:393) 1\n')
+    s = bench_profile.summarize(str(raw))
+    assert s['samples'] == 10
+    assert s['threads'] == {'MainThread': 60.0, 'balance_control': 40.0}
+    assert s['self'][0] == ['wait (rclpy/executors.py)', 60.0]
+    inclusive = dict(s['inclusive'])
+    assert inclusive['_tick (balance_node.py)'] == 40.0   # lines of a function add up
+    assert 'spin (rclpy/__init__.py)' not in inclusive    # frames every stack has are left out
+
+
+# ------------------------------------------------------------------------ real-time helpers
+
+def _in_thread(fn):
+    """Run fn in a fresh thread (scheduler and affinity changes die with it)."""
+    out = {}
+    th = threading.Thread(target=lambda: out.setdefault('r', fn()))
+    th.start()
+    th.join()
+    return out['r']
+
+
+def _clean(result):
+    ok, message = result
+    return isinstance(ok, bool) and isinstance(message, str) and message
+
+
+def test_fifo_priority_returns_clean_result():
+    def attempt():
+        result = realtime.set_fifo_priority(1)
+        policy = os.sched_getscheduler(0)
+        return result, policy
+
+    (ok, message), policy = _in_thread(attempt)
+    assert _clean((ok, message))
+    assert (policy == os.SCHED_FIFO) == ok  # ok means the thread really runs under FIFO
+    assert realtime.set_fifo_priority(0)[0] is True
+    ok, message = realtime.set_fifo_priority(1000)
+    assert ok is False and 'outside' in message
+
+
+def test_pinning_to_an_allowed_cpu_works():
+    allowed = sorted(os.sched_getaffinity(0))
+    cpu = allowed[-1]
+
+    def attempt():
+        return realtime.pin_to_cpus([cpu]), os.sched_getaffinity(0)
+
+    (ok, message), affinity = _in_thread(attempt)
+    assert ok, message
+    assert affinity == {cpu}
+    assert os.sched_getaffinity(0) == set(allowed)  # only the helper thread was pinned
+    ok, message = _in_thread(lambda: realtime.pin_to_cpus([max(allowed) + 4096]))
+    assert ok is False and 'not allowed' in message
+    assert realtime.pin_to_cpus([]) == (True, 'CPU pinning not requested')
+
+
+def test_memory_lock_returns_clean_result():
+    result = realtime.lock_memory(on_fault=True)
+    try:
+        assert _clean(result)
+    finally:
+        if result[0]:
+            assert realtime.unlock_memory()[0]
+
+
+def test_thread_name_is_visible_to_the_kernel():
+    def attempt():
+        result = realtime.name_thread('wlb_test_control_thread')
+        with open('/proc/self/task/%d/comm' % threading.get_native_id()) as f:
+            return result, f.read().strip()
+
+    (ok, message), comm = _in_thread(attempt)
+    assert _clean((ok, message))
+    if ok:
+        assert comm == 'wlb_test_contro'  # the kernel keeps 15 bytes
+
+
+def test_apply_reports_every_option():
+    report = _in_thread(lambda: realtime.apply(priority=0, cpus=(), lock=False))
+    assert set(report) == {'priority', 'affinity', 'memory_lock'}
+    assert all(_clean(r) and r[0] for r in report.values())
+    assert isinstance(realtime.kernel_is_preempt_rt(), bool)
