@@ -8,3 +8,6 @@ case $- in *u*) _wlb_u=1; set +u;; *) _wlb_u=0;; esac
 source "$_wlb_repo/.colcon/install/setup.bash"
 [ "$_wlb_u" = 1 ] && set -u
 unset _wlb_u
+# The package's executables (what `ros2 run wheelleg_balance NAME` starts): main_job, benchmark,
+# experiments, fault_report, balance_node, ... by name.
+export PATH="$_wlb_repo/.colcon/install/wheelleg_balance/lib/wheelleg_balance:$PATH"

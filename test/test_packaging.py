@@ -113,3 +113,21 @@ def test_executables_are_where_ros2_run_looks(tmp_path):
     share = pathlib.Path(prefix) / 'share' / PACKAGE
     assert (share / 'package.xml').is_file()
     assert (share / 'config' / 'balance.yaml').is_file()
+
+
+@pytest.mark.skipif(not (REPO / '.venv').is_dir() or not (REPO / '.colcon' / 'install').is_dir(),
+                    reason='no scripts/setup.sh build in this checkout (e.g. a colcon workspace)')
+def test_env_sh_puts_every_command_on_the_path():
+    # README: `source scripts/env.sh`, then the commands by name; scripts/main_job.sh runs
+    # `main_job` this way.
+    names = ' '.join(EXECUTABLES)
+    out = subprocess.run(['bash', '-c', 'source scripts/env.sh && for n in %s; do '
+                          'command -v "$n" || echo "missing $n"; done' % names],
+                         cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    found = out.stdout.split()
+    assert 'missing' not in found, out.stdout
+    for name, path in zip(EXECUTABLES, found):
+        assert path.endswith('/lib/%s/%s' % (PACKAGE, name)), (name, path)
+        # The executable runs the interpreter of the venv the package was built with.
+        assert 'python' in pathlib.Path(path).read_text().splitlines()[0]
