@@ -29,7 +29,7 @@ class RobotParams:
 
 @dataclass(frozen=True)
 class IdaPbcGains:
-    """IDA-PBC free parameters (Table I): k > 0, m22_0 >= 0, k_v > 0, P > 0."""
+    """IDA-PBC free parameters (Table I): k > 0, m22_0 >= 0, k_v > 0, P >= 0."""
 
     k: float = 0.015
     m22_0: float = 0.04

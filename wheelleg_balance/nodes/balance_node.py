@@ -413,8 +413,9 @@ class BalanceNode(Node):
                 try:
                     self._publish()
                 except Exception as exc:  # noqa: B902 -- a lost message is not a fault
-                    self.get_logger().warning('publishing failed: %r' % (exc,),
-                                              throttle_duration_sec=1.0)
+                    if self.context.ok():  # else a signal shut rclpy down meanwhile
+                        self.get_logger().warning('publishing failed: %r' % (exc,),
+                                                  throttle_duration_sec=1.0)
             end = time.monotonic_ns()
             self._computes[k] = (end - now) * 1e-9
             self._tick_count += 1

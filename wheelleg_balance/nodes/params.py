@@ -73,7 +73,8 @@ SPECS = (
     _f('ida_pbc.k', 0.015, 'IDA-PBC k > 0 of M_d (Table I)', 1e-6, 10.0),
     _f('ida_pbc.m22_0', 0.04, 'IDA-PBC m22^0 >= 0 of M_d (Table I)', 0.0, 10.0),
     _f('ida_pbc.k_v', 0.05, 'IDA-PBC damping injection k_v > 0 (Table I)', 1e-6, 10.0),
-    _f('ida_pbc.P', 0.2, 'IDA-PBC potential-energy gain P > 0 (Table I)', 1e-6, 100.0),
+    _f('ida_pbc.P', 0.2, 'IDA-PBC gain P >= 0 (Table I: 0.2; 0 makes (13) an exact IDA-PBC, '
+       'docs/ida_pbc.md)', 0.0, 100.0),
     Spec('ida_pbc.compensate_offset', True, 'IDA-PBC uses theta~ - d_hat (removes the velocity '
          'bias an IMU offset causes; the paper leaves it in)', read_only=RO),
     # Output regulation (9)-(10): LQR weights of the k_x schedule over l.
