@@ -423,6 +423,9 @@ class Recorder:
 
     def close(self):
         self.executor.shutdown()
+        # Join the spin thread before rclpy shuts down: a thread left inside rcl_wait at exit
+        # ended the process with "terminate called without an active exception" (rc 134).
+        self._thread.join(timeout=5.0)
         self.node.destroy_node()
 
 
