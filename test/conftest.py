@@ -2,10 +2,10 @@
 What the ROS tests share: isolation from other runs and a module-scoped rclpy context.
 
 pytest loads this file before it imports any test module of this folder, so the isolation below
-is in place before a test module starts rclpy or a child process. test/ is not a package and
-test_packaging.py requires every import of a test file to be a declared dependency, so shared
-code reaches the tests as fixtures from here or from the package (polling:
-``wheelleg_balance.tools.fault_suite.wait_for``), never by importing a module of this folder.
+is in place before a test module starts rclpy or a child process. Shared code reaches the tests
+as fixtures from here, from the package (polling: ``wheelleg_balance.tools.fault_suite.wait_for``)
+or from a helper module of this folder (``nonlinear_model.py``; pytest puts test/ on the path,
+and test_packaging.py knows such modules are not dependencies).
 """
 import os
 

@@ -2,13 +2,14 @@
 import math
 import timeit
 
+from nonlinear_model import rk4
 import numpy as np
 import pytest
 
 from wheelleg_balance.core.controller_base import ControlInput
 from wheelleg_balance.core.lqr import (
     DEFAULT_Q, DEFAULT_R, GainSchedule, lqr_gain, table_i_force_gain)
-from wheelleg_balance.core.model import ipc_accel, linearize
+from wheelleg_balance.core.model import linearize
 from wheelleg_balance.core.output_regulation import LqrController
 from wheelleg_balance.core.params import RobotParams, TABLE_I_K_X
 
@@ -23,18 +24,6 @@ def max_real_eig(k, l):
     return max(np.linalg.eigvals(A + np.outer(B, k)).real)
 
 
-def rk4(state, u, l, h):
-    """One RK4 step of the nonlinear model (1) with u held."""
-    def f(s):
-        theta_ddot, x_ddot = ipc_accel(s[0], s[1], u, l, P)
-        return (s[1], theta_ddot, s[3], x_ddot)
-    k1 = f(state)
-    k2 = f([s + 0.5 * h * k for s, k in zip(state, k1)])
-    k3 = f([s + 0.5 * h * k for s, k in zip(state, k2)])
-    k4 = f([s + h * k for s, k in zip(state, k3)])
-    return [s + h / 6.0 * (a + 2 * b + 2 * c + d) for s, a, b, c, d in zip(state, k1, k2, k3, k4)]
-
-
 def simulate(control, theta0, l, duration, substeps=4):
     """Nonlinear (1), u from ``control(state)`` held 2 ms and saturated at 12 N m per wheel."""
     state = [theta0, 0.0, 0.0, 0.0]
@@ -43,7 +32,7 @@ def simulate(control, theta0, l, duration, substeps=4):
         u = max(-U_MAX, min(U_MAX, control(state)))
         log.append(state + [u])
         for _ in range(substeps):
-            state = rk4(state, u, l, DT / substeps)
+            state = rk4(state, u, l, DT / substeps, P)
     log.append(state + [u])
     return np.array(log)
 

@@ -2,12 +2,13 @@
 import math
 import timeit
 
+from nonlinear_model import rk4
 import numpy as np
 import pytest
 
 from wheelleg_balance.core.controller_base import ControlInput
 from wheelleg_balance.core.lqr import GainSchedule, table_i_force_gain
-from wheelleg_balance.core.model import disturbance_input, ipc_accel, linearize
+from wheelleg_balance.core.model import disturbance_input, linearize
 from wheelleg_balance.core.observer import (
     C_HAT, DEFAULT_OBSERVER_POLES, discretize, DisturbanceObserver)
 from wheelleg_balance.core.output_regulation import (
@@ -31,18 +32,6 @@ def schedule():
 @pytest.fixture(scope='module')
 def observer():
     return DisturbanceObserver(P)
-
-
-def rk4(state, u, l, h):
-    """One RK4 step of the nonlinear model (1) with u held."""
-    def f(s):
-        theta_ddot, x_ddot = ipc_accel(s[0], s[1], u, l, P)
-        return (s[1], theta_ddot, s[3], x_ddot)
-    k1 = f(state)
-    k2 = f([s + 0.5 * h * k for s, k in zip(state, k1)])
-    k3 = f([s + 0.5 * h * k for s, k in zip(state, k2)])
-    k4 = f([s + h * k for s, k in zip(state, k3)])
-    return [s + h / 6.0 * (a + 2 * b + 2 * c + d) for s, a, b, c, d in zip(state, k1, k2, k3, k4)]
 
 
 def simulate_output_regulation(l, duration, controller=None, d=D_TRUE, d_hat0=D_HAT0,
@@ -71,7 +60,7 @@ def simulate_output_regulation(l, duration, controller=None, d=D_TRUE, d_hat0=D_
         u = max(-U_MAX, min(U_MAX, ctl.compute(s)))
         log.append([k * DT] + state + [s.xi_hat[4], u])
         for _ in range(substeps):
-            state = rk4(state, u, l, DT / substeps)
+            state = rk4(state, u, l, DT / substeps, P)
     return np.array(log)
 
 
@@ -302,7 +291,7 @@ def test_output_regulation_tracks_velocity_reference():
         s.xi_hat = obs.update(state[0] + D_TRUE, state[2], u, l)
         u = ctl.compute(s)
         for _ in range(4):
-            state = rk4(state, u, l, DT / 4)
+            state = rk4(state, u, l, DT / 4, P)
     assert state[3] == pytest.approx(0.3, abs=1e-3)
     assert abs(state[0]) < math.radians(0.05)
 

@@ -53,7 +53,8 @@ def _third_party_imports(folder):
                 continue
             for name in names:
                 top = name.split('.')[0]
-                if top not in stdlib and top != PACKAGE:
+                local = (path.parent / (top + '.py')).is_file()  # a helper module beside it
+                if top not in stdlib and top != PACKAGE and not local:
                     found.setdefault(top, str(path.relative_to(REPO)))
     return found
 
