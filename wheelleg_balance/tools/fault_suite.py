@@ -918,6 +918,10 @@ def _on_armed_rig(context, out: Outcome, run: Callable[[Rig], None], **rig_args)
     """
     with Rig(context, **rig_args) as rig:
         if out.check('armed', rig.arm()):
+            # The rig leans the robot, so balancing means torque: let the first commands reach
+            # the bus before the fault (a fault injected within a tick of arming found only the
+            # enter-motor-mode frames and failed the "torque before the fault" check).
+            wait_for(lambda: _torque_before(rig.motors, time.time()), 1.0)
             run(rig)
     return out
 
