@@ -25,7 +25,6 @@ from geometry_msgs.msg import TwistStamped
 from nav_msgs.msg import Odometry
 import pytest
 from rcl_interfaces.srv import GetParameters, SetParameters
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter, parameter_value_to_python
 from rclpy.qos import qos_profile_sensor_data
@@ -251,7 +250,7 @@ class Robot(Node):
 
 
 class Rig:
-    """balance_node + fake motors + fake sensors, spun by one executor thread."""
+    """balance_node + fake motors + fake sensors, each node spun by its own executor thread."""
 
     def __init__(self, context, motor_protocol='mit', **overrides):
         self.node_bus = MotorBus('wlb-%s' % uuid.uuid4().hex, motor_protocol)
@@ -260,17 +259,8 @@ class Rig:
         self.node = BalanceNode(bus=self.node_bus, context=context, parameter_overrides=[
             Parameter(k, value=v) for k, v in params.items()])
         self.robot = Robot(context)
-        self.executor = SingleThreadedExecutor(context=context)
-        self.executor.add_node(self.node)
-        self.executor.add_node(self.robot)
-        self._spin = threading.Thread(target=self._spin_loop, daemon=True)
-        self._running = True
-        self._spin.start()
+        self._spinning = Spinning(context, (self.node, self.robot))
         self.robot.start()
-
-    def _spin_loop(self):
-        while self._running:
-            self.executor.spin_once(timeout_sec=0.05)
 
     def arm_and_balance(self):
         assert wait_for(lambda: self.robot.arm_client.service_is_ready(), 5.0)
@@ -282,9 +272,7 @@ class Rig:
     def close(self):
         self.robot.stop()
         self.node.shutdown()
-        self._running = False
-        self._spin.join(2.0)
-        self.executor.shutdown()
+        self._spinning.stop()
         self.node.destroy_node()
         self.robot.destroy_node()
 

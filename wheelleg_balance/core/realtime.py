@@ -121,12 +121,16 @@ def apply(priority: int = 0, cpus: Iterable[int] = (), lock: bool = False) -> Di
     """
     Try every requested option from the calling (control) thread.
 
-    Returns {'priority' | 'affinity' | 'memory_lock': (ok, message)} for /diagnostics.
+    The memory lock is MCL_CURRENT | MCL_FUTURE | MCL_ONFAULT: a ROS node reserves large but
+    little-touched mappings (thread stacks, DDS pools) that would otherwise count in full
+    against RLIMIT_MEMLOCK. Returns {'priority' | 'affinity' | 'memory_lock': (ok, message)}
+    for /diagnostics.
     """
     return {
         'priority': set_fifo_priority(priority),
         'affinity': pin_to_cpus(cpus),
-        'memory_lock': lock_memory() if lock else (True, 'memory locking not requested'),
+        'memory_lock': (lock_memory(future=True, on_fault=True) if lock
+                        else (True, 'memory locking not requested')),
     }
 
 

@@ -362,10 +362,8 @@ class BalanceNode(Node):
         v = self._values
         results = {'thread_name': realtime.name_thread('balance_control')}
         cpu = v['realtime_cpu']
-        results.update(realtime.apply(v['realtime_priority'], () if cpu < 0 else (cpu,), False))
-        if v['lock_memory']:
-            # MCL_ONFAULT: thread stacks and DDS pools are reserved large but touched little.
-            results['memory_lock'] = realtime.lock_memory(future=True, on_fault=True)
+        results.update(realtime.apply(v['realtime_priority'], () if cpu < 0 else (cpu,),
+                                      v['lock_memory']))
         self._realtime = '; '.join(message for _, message in results.values())
         for name in ('priority', 'affinity', 'memory_lock'):
             ok, message = results[name]

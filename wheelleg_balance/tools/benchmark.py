@@ -86,14 +86,18 @@ def run_node(args, env: Dict[str, str], workdir: str) -> Dict:
         floors.append(subprocess.Popen(
             _loop_command('floor', duration, out, args.realtime_priority), env=env))
 
-    node = bench_node.run(
-        args.duration, workdir, env, '239.74.163.%d' % random.randint(10, 250),
-        random.randint(40000, 49999), controller=args.controller,
-        realtime_priority=args.realtime_priority, on_window=attach)
+    node = bench_node.run(args.duration, workdir, env, *_can_address(),
+                          controller=args.controller,
+                          realtime_priority=args.realtime_priority, on_window=attach)
     for proc in floors:
         if proc.wait(timeout=120) == 0:
             node['floor_during_node'] = loop_result(out)
     return node
+
+
+def _can_address():
+    """Return a udp_multicast group and port of this run's own (concurrent runs stay apart)."""
+    return '239.74.163.%d' % random.randint(10, 250), random.randint(40000, 49999)
 
 
 def loop_result(out: str) -> Dict:
@@ -349,8 +353,7 @@ def profile(args, env: Dict[str, str], workdir: str) -> Dict:
 
     duration = min(args.duration, 20.0)
     try:
-        bench_node.run(duration, workdir, env, '239.74.163.%d' % random.randint(10, 250),
-                       random.randint(40000, 49999), controller=args.controller,
+        bench_node.run(duration, workdir, env, *_can_address(), controller=args.controller,
                        on_window=attach, tag='_profile')
     except Exception as exc:  # noqa: B902
         return {'error': '%s: %s' % (type(exc).__name__, exc)}

@@ -581,11 +581,12 @@ def run_experiment(exp: Experiment, rec: Recorder, setup: RunSetup, log: Progres
     resyncs = result['sim_node_loop'].get('resyncs', 0)
     # A sensor timeout against the simulator means sim_node was not scheduled for that long.
     silent = any('silent for' in f for f in rec.faults)
+    lag = trace.sim_lag() if trace is not None else 0.0
     result['timing_disturbed'] = bool(late > DISTURBED_LATE_SHARE or
-                                      resyncs >= DISTURBED_RESYNCS or silent)
+                                      resyncs >= DISTURBED_RESYNCS or silent or
+                                      lag > DISTURBED_SIM_LAG)
     if trace is not None:
-        result['sim_lag_s'] = trace.sim_lag()
-        result['timing_disturbed'] |= result['sim_lag_s'] > DISTURBED_SIM_LAG
+        result['sim_lag_s'] = lag
         plot(exp, trace, folder / ('%s.png' % exp.name), result)
         result['figure_file'] = '%s/%s.png' % (exp.name, exp.name)
     result['trace'] = trace
