@@ -1,30 +1,44 @@
 """
 Bring up the real robot: joystick driver, teleop_node and balance_node.
 
-    ros2 launch wheelleg_balance robot.launch.py joystick:=ps4
+    ros2 launch wheelleg_balance robot.launch.py joystick:=ps4 params_file:=$HOME/robot.yaml
 
 - ``game_controller_node`` (package joy): the pad through SDL2's game controller mapping, so
   the button and axis indices of config/teleop_<joystick>.yaml hold for any Xbox, PS4 or PS5 pad
   (the plain ``joy_node`` uses SDL's raw joystick API, whose order depends on pad and driver);
 - ``teleop_node``: joy -> cmd_vel (TwistStamped), config/teleop_<joystick>.yaml;
-- ``balance_node``: the balance loop, config/balance.yaml. It starts disarmed unless the file
-  sets auto_arm: ``ros2 service call /balance_node/arm std_srvs/srv/SetBool "{data: true}"``.
+- ``balance_node``: the balance loop, with ``params_file`` (default config/balance.yaml; the
+  robot's own file is the one ``bringup`` writes, docs/robot_setup.md). It starts disarmed
+  unless the file sets auto_arm:
+  ``ros2 service call /balance_node/arm std_srvs/srv/SetBool "{data: true}"``;
+- ``robot_state_publisher``: the TF of the robot's links from urdf/wheelleg_balance.urdf and the
+  joint_states balance_node publishes (hips, wheels and the legs' passive knees).
 
-All files come from share/wheelleg_balance/config of the installed package.
+All files come from share/wheelleg_balance of the installed package. The launch packages are
+imported inside generate_launch_description, so the module imports (and its helpers run) where
+they are not installed, as in the test suite's environment.
 """
 import os
 
-from ament_index_python.packages import get_package_share_directory
-from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument
-from launch.substitutions import LaunchConfiguration
-from launch_ros.actions import Node
-
 JOYSTICKS = ('xbox', 'ps4')
+URDF_FILE = os.path.join('urdf', 'wheelleg_balance.urdf')
+
+
+def robot_description(share):
+    """Return the URDF text robot_state_publisher takes as robot_description."""
+    with open(os.path.join(share, URDF_FILE)) as f:
+        return f.read()
 
 
 def generate_launch_description():
-    config = os.path.join(get_package_share_directory('wheelleg_balance'), 'config')
+    from ament_index_python.packages import get_package_share_directory
+    from launch import LaunchDescription
+    from launch.actions import DeclareLaunchArgument
+    from launch.substitutions import LaunchConfiguration
+    from launch_ros.actions import Node
+
+    share = get_package_share_directory('wheelleg_balance')
+    config = os.path.join(share, 'config')
     joystick = LaunchConfiguration('joystick')
     # One file per pad holds the parameters of both the joystick driver and teleop_node. A list
     # of text and substitutions is concatenated by launch into one path.
@@ -37,6 +51,12 @@ def generate_launch_description():
              parameters=[teleop_yaml], output='screen'),
         Node(package='wheelleg_balance', executable='teleop_node', name='teleop_node',
              parameters=[teleop_yaml], output='screen'),
+        DeclareLaunchArgument('params_file', default_value=os.path.join(config, 'balance.yaml'),
+                              description="balance_node's parameters (the robot's file, as "
+                                          '`bringup` writes it)'),
         Node(package='wheelleg_balance', executable='balance_node', name='balance_node',
-             parameters=[os.path.join(config, 'balance.yaml')], output='screen'),
+             parameters=[LaunchConfiguration('params_file')], output='screen'),
+        Node(package='robot_state_publisher', executable='robot_state_publisher',
+             name='robot_state_publisher',
+             parameters=[{'robot_description': robot_description(share)}], output='screen'),
     ])

@@ -3,7 +3,8 @@ What the ROS tests share: isolation from other runs and a module-scoped rclpy co
 
 pytest loads this file before it imports any test module of this folder, so the isolation below
 is in place before a test module starts rclpy or a child process. Shared code reaches the tests
-as fixtures from here, from the package (polling: ``wheelleg_balance.tools.fault_suite.wait_for``)
+as fixtures from here, from the package (polling:
+``wheelleg_balance.validation.faults.rig.wait_for``)
 or from a helper module of this folder (``nonlinear_model.py``; pytest puts test/ on the path,
 and test_packaging.py knows such modules are not dependencies).
 """

@@ -18,9 +18,9 @@ import pytest
 
 from wheelleg_balance.core import realtime
 from wheelleg_balance.core.pipeline import CONTROLLER_NAMES
-from wheelleg_balance.tools import bench_profile, benchmark
-from wheelleg_balance.tools.bench_node import probe_latencies
-from wheelleg_balance.tools.bench_stats import period_stats, served_deadlines
+from wheelleg_balance.validation.bench import benchmark, profiling as bench_profile
+from wheelleg_balance.validation.bench.node import probe_latencies
+from wheelleg_balance.validation.bench.stats import period_stats, served_deadlines
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 MS = 1_000_000
@@ -38,7 +38,7 @@ def quick_report(tmp_path_factory):
     env = dict(os.environ)
     env['PYTHONPATH'] = os.pathsep.join(p for p in (str(REPO), env.get('PYTHONPATH')) if p)
     proc = subprocess.run(
-        [sys.executable, '-m', 'wheelleg_balance.tools.benchmark', '--quick',
+        [sys.executable, '-m', 'wheelleg_balance.validation.bench.benchmark', '--quick',
          '--parts', 'core,floor', '--output', str(out)],
         env=env, capture_output=True, text=True, timeout=180)
     assert proc.returncode == 0, proc.stdout + proc.stderr
@@ -69,9 +69,9 @@ def test_quick_core_figures(quick_report):
         assert core['fell'] is False, name  # the timed ticks really balanced the robot
     rows = {t['name']: t for t in report['targets']}
     for name in CONTROLLER_NAMES:
-        row = rows['core p99 %s' % name]
+        row = rows['core tick p99 %s' % name]
         assert row['value'] == report['core'][name]['p99_us']
-        assert row['pass'] == (row['value'] < 50.0)
+        assert row['pass'] == (row['value'] < benchmark.TICK_P99_US)
 
 
 def test_quick_floor_figures(quick_report):
@@ -174,15 +174,58 @@ def test_probe_without_step_is_not_measured():
     assert np.all(np.isnan(lat))
 
 
+# ------------------------------------------------------------------------- motor process
+
+def test_motor_process_records_every_frame_and_the_firmware_answers(tmp_path):
+    import can
+    from wheelleg_balance.core.protocols.mit import MitProtocol
+    from wheelleg_balance.validation.bench.node import MotorBus, Recording
+    mit = MitProtocol()
+    channel = 'bench_motors_%d' % os.getpid()
+    host = can.Bus(interface='virtual', channel=channel)
+    motors = MotorBus(bus=can.Bus(interface='virtual', channel=channel))
+    motors.start()
+    try:
+        frames = (mit.torque_frames({1: 1.0}) + mit.enable_frames([1, 2])
+                  + mit.torque_frames({1: 2.0, 2: -3.0}) + mit.disable_frames([1, 2]))
+        replies = []
+        for frame in frames:
+            host.send(can.Message(arbitration_id=frame.arbitration_id, data=frame.data,
+                                  is_extended_id=False))
+            msg = host.recv(2.0)
+            assert msg is not None, frame
+            replies.append(mit.decode_feedback(type(frame)(msg.arbitration_id, bytes(msg.data))))
+        assert motors.armed_ns() == motors.t_ns[1]   # the first command after both entered
+    finally:
+        motors.stop()
+        host.shutdown()
+    # One reply per frame, from the addressed motor; torque only in motor mode (not before
+    # the enter frame, nothing after the exit: zero torque, then exit).
+    assert [r.motor_id for r in replies] == [f.arbitration_id for f in frames]
+    assert abs(replies[0].torque) < 0.01
+    assert [r.torque for r in replies[3:5]] == pytest.approx([2.0, -3.0], abs=0.01)
+    motors.save(str(tmp_path / 'frames.npz'))
+    rec = Recording(str(tmp_path / 'frames.npz'))
+    assert list(rec.ids) == [1, 1, 2, 1, 2] and rec.reply_errors == 0
+    assert rec.torque[3:].tolist() == pytest.approx([0.0, 0.0], abs=0.01)
+    assert [(i, k) for _, i, k in rec.events] == [(1, 'enter'), (2, 'enter'), (1, 'exit'),
+                                                  (2, 'exit')]
+
+
 # ------------------------------------------------------------------------------ targets
 
-def _report(node_p99, node_late, floor_p99=4.0, floor_late=0.02, rate=500.0, cpu=20.0):
+def _report(node_p99, node_late, floor_p99=4.0, floor_late=0.02, rate=500.0, cpu=20.0,
+            skipped=0, compute_p99_ms='0.4', core_p99_ms='0.2'):
     return {'core': {'lqr': {'p99_us': 20.0}},
             'floor': {'period_p99_ms': floor_p99, 'late_share': floor_late},
             'node': {'timing': {'rate_hz': rate, 'period_p99_ms': node_p99,
                                 'late_share': node_late}, 'cpu_percent': cpu,
+                     'overruns_in_window': skipped,
+                     'node_loop': {'compute_p99_ms': compute_p99_ms,
+                                   'core_compute_p99_ms': core_p99_ms},
                      'node_mode': 'BALANCING', 'motors': {'1': {'balancing_share': 1.0},
-                                                          '2': {'balancing_share': 1.0}}}}
+                                                          '2': {'balancing_share': 1.0},
+                                                          '3': {}}}}
 
 
 def test_targets_against_the_floor_of_the_same_run():
@@ -193,8 +236,19 @@ def test_targets_against_the_floor_of_the_same_run():
     assert not rows['node period p99 <= 1.2 x floor']
     assert not rows['node late share <= 1.2 x floor']
     assert not rows['node rate within 0.1 %']
-    assert not rows['node CPU']
-    assert rows['core p99 lqr']
+    assert not rows['node CPU, all processes']
+    assert rows['core tick p99 lqr']
+    rows = {t['name']: t['pass'] for t in benchmark.targets(
+        _report(4.7, 0.023, skipped=3, compute_p99_ms='1.2'))}
+    assert not rows['node deadlines skipped']
+    assert not rows['node tick compute p99']
+    assert rows['node BalanceLoop.tick p99']
+    rows = {t['name']: t['pass'] for t in benchmark.targets(
+        _report(4.7, 0.023, core_p99_ms='1.1'))}
+    assert rows['node tick compute p99'] and not rows['node BalanceLoop.tick p99']
+    rows = {t['name']: t['pass'] for t in benchmark.targets(
+        _report(4.7, 0.023, compute_p99_ms='-'))}
+    assert not rows['node tick compute p99']   # no figure never passes
     faulted = _report(4.7, 0.023)
     faulted['node']['node_mode'] = 'FAULT'
     rows = {t['name']: t['pass'] for t in benchmark.targets(faulted)}

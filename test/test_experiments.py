@@ -1,5 +1,5 @@
 """
-`experiments --quick` (tools/experiments.py): the files it writes and the claims they carry.
+`experiments --quick` (validation/paper/experiments.py): what it writes and the claims it carries.
 
 The numbers checked here are simulated by the run itself (nonlinear model (1) + BalanceCore).
 """
@@ -11,7 +11,7 @@ import os
 
 import pytest
 
-from wheelleg_balance.tools import experiments
+from wheelleg_balance.validation.paper import experiments, table
 
 COMMON = ('overshoot_deg', 'settling_time_s', 'peak_torque_nm', 'fell')
 STANDING = ('d_hat_error_deg', 'drift_m', 'x_dot_final_mps')
@@ -95,3 +95,19 @@ def test_plots_and_table_are_written_and_the_folder_is_printed(quick_run):
     assert '| ida_pbc_table_i |' in table and 'Standing still' in table
     assert str(out) in printed.strip().splitlines()[-1]
     assert os.path.isabs(printed.strip().splitlines()[-1].split(': ', 1)[1])
+
+
+def test_the_experiments_metrics_and_targets_are_the_tables(quick_run):
+    _, data, _ = quick_run
+    entries = table.for_runner('model1')
+    assert list(data) == [e.model1_key for e in entries] + ['meta']
+    for e in entries:
+        allowed = set(table.metric_names(e, 'model1'))
+        rows = data[e.model1_key].values()
+        if e.kind == 'robustness':              # per perturbation, per controller
+            rows = [m for row in rows for m in row.values()]
+        for m in rows:
+            assert set(m) <= allowed, (e.name, set(m) - allowed)
+    assert data['meta']['targets'] == table.BY_NAME['standing'].model1.limits() == {
+        'd_hat_error_deg': 0.1, 'd_hat_time_s': 5.0, 'x_dot_final_mps': 1e-3, 'drift_m': 0.01}
+    assert data['meta']['paper'] == json.loads(json.dumps(table.PAPER_FIGURES))

@@ -1,61 +1,75 @@
 """
 balance_node under faults and bad input: each fault, its reaction, the time to zero torque.
 
-The scenarios live in wheelleg_balance/tools/fault_suite.py (the ``fault_report`` command runs
+The scenarios live in wheelleg_balance/validation/faults/ (the ``fault_report`` command runs
 the same ones); docs/faults.md has the table of reactions and measured times. Most run the node
-as on the robot: its own 2 ms control thread, real DDS on localhost (own domain), a python-can
+as on the robot: its 2 ms control loop, real DDS on localhost (own domain), a python-can
 ``virtual`` bus with two fake MIT motors; torques are read off the bus and decoded with
 MitProtocol. The SIGINT/SIGTERM tests run the node as a process on ``udp_multicast``; the push
 test runs against sim_node (MuJoCo) in this process; the field matrices, the controller switch
-and the latch test drive the node's callbacks and tick directly on a virtual clock.
+and the latch test drive the control tick itself (core/balance_loop.py) on a virtual clock.
 
 Each test fails with the list of the scenario's checks that did not hold.
 """
 import math
+import warnings
 
 import pytest
 
 # conftest.py isolates ROS (domain from the pid, localhost) and provides ``context``.
-from wheelleg_balance.tools import fault_suite as fs
+from wheelleg_balance.validation.faults.bench import (is_zero_torque, LoopBench, make_imu,
+                                                      make_joints, MODE)
+from wheelleg_balance.validation.faults.lockstep import scenario_controller_switch
+from wheelleg_balance.validation.faults.matrices import FieldMatrix, MATRICES
+from wheelleg_balance.validation.faults.outcome import Outcome
+from wheelleg_balance.validation.faults.rig import REACTION_TIME_CHECK
+from wheelleg_balance.validation.faults.suite import SCENARIOS
 
 pytestmark = pytest.mark.ros
 
 
 @pytest.fixture(scope='module')
-def matrices(context):
-    """Return a FieldMatrix by leg setting: False, no leg joints configured; True, leg joints."""
-    with fs.Bench(context) as bench, fs.Bench(context, **fs.LEG_PARAMS) as leg_bench:
-        yield {False: fs.FieldMatrix(bench), True: fs.FieldMatrix(leg_bench)}
+def matrices():
+    """Return a FieldMatrix per parameter set of MATRICES (keyed by its sorted names)."""
+    return {tuple(sorted(params)): FieldMatrix(LoopBench(**params))
+            for _, _, params in MATRICES.values()}
 
 
-def assert_handled(out: fs.Outcome) -> fs.Outcome:
+def assert_handled(out: Outcome) -> Outcome:
     assert out.handled, '%s (%s): %s' % (out.name, out.expected, '; '.join(out.failures))
     return out
 
 
 def scenario_test(name):
     """
-    Return a test that runs fault_suite scenario ``name`` and asserts it was handled.
+    Return a test that runs fault scenario ``name`` and asserts it was handled.
 
-    A run whose only failed check is the reaction-time bound (the timeout + fs.SLACK) is run
-    once more: a scheduling stall of the loaded 2-core test machine can exceed the slack once
-    (seen: 160.8 ms against 160 ms). Every other check, and a reaction time that misses its
-    bound twice, fails.
+    A run whose only failed check is the reaction-time bound (the timeout + rig.SLACK), with
+    the zero torque on the bus, only late, is run once more: a scheduling stall of the loaded
+    2-core test machine can exceed the slack once (seen: 160.8 ms against 160 ms). A zero
+    torque that never came, every other check, and a bound missed twice fail. Every retry is
+    recorded: a warning in the test report and the junit property ``retried``.
     """
-    def test(context):
-        out = fs.SCENARIOS[name](context)
-        if not out.handled and all(f.startswith(fs.REACTION_TIME_CHECK) for f in out.failures):
-            out = fs.SCENARIOS[name](context)
+    def test(context, record_property):
+        out = SCENARIOS[name](context)
+        late = out.time_to_zero is not None and out.failures and \
+            all(f.startswith(REACTION_TIME_CHECK) for f in out.failures)
+        if not out.handled and late:
+            text = '%s: zero torque came late (%.1f ms: %s), run once more' % (
+                name, 1e3 * out.time_to_zero, '; '.join(out.failures))
+            record_property('retried', text)
+            warnings.warn(text)
+            out = SCENARIOS[name](context)
         assert_handled(out)
     return test
 
 
 def matrix_test(name):
-    """Return a test that runs field matrix ``name`` of fault_suite.MATRICES (every case)."""
-    kind, cases, legs = fs.MATRICES[name]
+    """Return a test that runs field matrix ``name`` of MATRICES (every case)."""
+    kind, cases, params = MATRICES[name]
 
     def test(matrices):
-        assert_handled(matrices[legs].outcome(name, kind, cases))
+        assert_handled(matrices[tuple(sorted(params))].outcome(name, kind, cases))
     return test
 
 
@@ -73,6 +87,8 @@ test_wheel_velocity_nan_faults_at_the_next_tick = scenario_test('wheel_velocity_
 test_joint_states_non_finite_value_in_every_field = matrix_test('joint_fields_non_finite')
 test_joint_states_absurd_finite_value_in_every_field = matrix_test('joint_fields_absurd')
 test_wheel_joints_missing_is_stale_joint_states = scenario_test('wheel_joints_missing')
+test_imu_stamped_ahead_of_the_clock_is_refused = scenario_test('imu_stamp_future')
+test_imu_stamps_running_backwards_are_refused = scenario_test('imu_stamp_backwards')
 test_leg_angles_out_of_five_bar_reach_fault = scenario_test('leg_out_of_reach')
 test_leg_angles_bad_values_fault = matrix_test('leg_fields')
 
@@ -92,6 +108,16 @@ test_replies_from_a_stranger_are_ignored = scenario_test('stranger_replies')
 test_full_tx_queue_faults_and_sends_only_zero_torque_after = scenario_test('can_tx_queue_full')
 test_bus_off_faults_and_sends_only_zero_torque_after = scenario_test('can_bus_off')
 test_error_frame_storm_does_not_stop_balancing = scenario_test('error_frame_storm')
+test_motor_error_code_faults_with_the_reason = scenario_test('motor_error')
+test_rebooted_motor_faults = scenario_test('motor_rebooted')
+test_over_temperature_sits_down_and_refuses_to_arm = scenario_test('motor_over_temperature')
+
+# ------------------------------------------------- at the robot's own timeouts (50 ms)
+
+test_imu_silent_at_the_robot_timeouts = scenario_test('imu_silent_50ms')
+test_imu_frozen_at_the_robot_timeouts = scenario_test('imu_frozen_50ms')
+test_wheel_joints_missing_at_the_robot_timeouts = scenario_test('wheel_joints_missing_50ms')
+test_silent_motor_at_the_robot_timeouts = scenario_test('motor_silent_50ms')
 
 # --------------------------------------------------------------------------------- falls
 
@@ -103,10 +129,11 @@ test_push_past_fall_angle_on_sim_node_ends_at_rest_without_torque = \
 # ---------------------------------------------------------------------- parameters, switch
 
 test_bad_parameters_are_refused_and_nothing_changes = scenario_test('bad_parameters')
+test_safety_parameters_only_tighten_while_balancing = scenario_test('loosen_while_balancing')
 
 
 def test_controller_switch_at_full_speed_is_bumpless(context):
-    out = assert_handled(fs.scenario_controller_switch(context))
+    out = assert_handled(scenario_controller_switch(context))
     # The check can fail: without blending the switch to lqr jumps by far more than the bound.
     to_lqr = out.figures['to_lqr']
     assert to_lqr['unblended_nm'] > 5 * to_lqr['bound_nm']
@@ -121,9 +148,8 @@ LATCH_CAUSES = ('imu_stale', 'non_finite', 'fall', 'motor_silent', 'can_send')
 
 
 @pytest.fixture(scope='module')
-def auto_arm_bench(context):
-    with fs.Bench(context, auto_arm=True) as bench:
-        yield bench
+def auto_arm_bench():
+    return LoopBench(auto_arm=True)
 
 
 @pytest.mark.parametrize('cause', LATCH_CAUSES)
@@ -136,50 +162,50 @@ def test_fault_latches_until_rearm_even_with_auto_arm(auto_arm_bench, cause):
     """
     bench = auto_arm_bench
     tail = math.radians(36.0)
-    with bench.virtual_time() as clock:
+    bench.feed()
+    bench.rearm()
+    for _ in range(10):
         bench.feed()
-        bench.rearm()
-        for _ in range(10):
-            bench.feed()
-            bench.tick()
-        if cause == 'imu_stale':
-            clock.t += 0.2          # nothing arrives for 0.2 s
-            bench.node._on_joint_states(fs.make_joints())
-            frames = bench.tick()
-        elif cause == 'non_finite':
-            bench.feed(fs.make_imu(math.nan))
-            frames = bench.tick()
-        elif cause == 'fall':
-            bench.feed(fs.make_imu(math.radians(50.0)))
-            frames = bench.tick()
-        elif cause == 'motor_silent':
-            clock.t += 0.2
-            bench.feed()
-            frames = bench.tick(replies=False)
-        else:
-            bench.bus.fail_with = fs.tx_queue_full()
-            bench.feed()
-            frames = bench.tick()
-            bench.bus.fail_with = None
-        assert bench.mode == fs.MODE['FAULT']
-        codes = {f.code for f in bench.node.supervisor.faults}
-        assert cause in codes, codes
-        if cause != 'can_send':
-            assert frames and all(fs.is_zero_torque(f) for _, f in frames), frames
-        for _ in range(5000):   # 10 s lying on the tail, every sensor and motor healthy
-            bench.feed(fs.make_imu(tail))
-            frames = bench.tick()
-            assert bench.mode == fs.MODE['FAULT']
-            assert len(frames) == 2 and all(fs.is_zero_torque(f) for _, f in frames)
-        req = bench.request(True)
+        bench.tick()
+    if cause == 'imu_stale':
+        bench.t += 0.2          # nothing arrives for 0.2 s
+        bench.feed_joints(make_joints())
         frames = bench.tick()
-        assert req.success, req.message
-        assert bench.mode == fs.MODE['BALANCING']
-        assert [f for _, f in frames[:2]] == ['enter', 'enter']
+    elif cause == 'non_finite':
+        # A NaN pitch rate (a NaN orientation alone falls back to gravity: core/attitude.py).
+        bench.feed(make_imu(0.02, math.nan))
+        frames = bench.tick()
+    elif cause == 'fall':
+        bench.feed(make_imu(math.radians(50.0)))
+        frames = bench.tick()
+    elif cause == 'motor_silent':
+        bench.t += 0.2
+        bench.feed()
+        frames = bench.tick(replies=False)
+    else:
+        bench.fail_with = 'CanOperationError: Failed to transmit: [Errno 105] No buffer space'
+        bench.feed()
+        frames = bench.tick()
+        bench.fail_with = None
+    assert bench.mode == MODE['FAULT']
+    codes = {f.code for f in bench.loop.supervisor.faults}
+    assert cause in codes, codes
+    if cause != 'can_send':
+        assert frames and all(is_zero_torque(f) for _, f in frames), frames
+    for _ in range(5000):   # 10 s lying on the tail, every sensor and motor healthy
+        bench.feed(make_imu(tail))
+        frames = bench.tick()
+        assert bench.mode == MODE['FAULT']
+        assert len(frames) == 2 and all(is_zero_torque(f) for _, f in frames)
+    req = bench.request(True)
+    frames = bench.tick()
+    assert req.success, req.message
+    assert bench.mode == MODE['BALANCING']
+    assert [f for _, f in frames[:2]] == ['enter', 'enter']
 
 
 # ----------------------------------------------------------------------------- signals
 
 @pytest.mark.parametrize('name', ['sigint_shutdown', 'sigterm_shutdown'])
 def test_signal_sends_zero_torque_then_exit_frames(context, name):
-    assert_handled(fs.SCENARIOS[name](context))
+    assert_handled(SCENARIOS[name](context))

@@ -5,7 +5,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 import numpy as np
 import pytest
-from wheelleg_balance.core.kinematics import FiveBarLeg
+from wheelleg_balance.core.kinematics import FiveBarLeg, STOP_MARGIN
 from wheelleg_balance.core.params import RobotParams
 
 P = RobotParams()
@@ -61,7 +61,9 @@ def test_defaults_span_the_robot_height_range_inside_the_joint_limits():
 
 
 @pytest.mark.parametrize('q', [
-    (LEG.q_max + 0.01, 0.8), (0.8, LEG.q_min - 0.01), (math.nan, 0.5), (0.5, math.inf),
+    # beyond the hard stops by more than the reading tolerance kinematics allows
+    (LEG.q_max + STOP_MARGIN + 0.01, 0.8), (0.8, LEG.q_min - STOP_MARGIN - 0.01),
+    (math.nan, 0.5), (0.5, math.inf),
 ])
 def test_out_of_reach_angles_are_detected(q):
     assert not LEG.in_reach(*q)
@@ -96,3 +98,111 @@ def test_invalid_geometry_is_rejected():
 def test_com_offset_moves_the_height_one_to_one():
     raised = FiveBarLeg(com_height=0.08)
     assert raised.height(0.7, 0.7) - LEG.height(0.7, 0.7) == pytest.approx(0.03, abs=1e-12)
+
+
+# ---- Jacobian, rates, static torques, knee angles ------------------------------------------
+
+REACH = {'q_front': st.floats(LEG.q_min + 0.01, LEG.q_max - 0.01),
+         'q_rear': st.floats(LEG.q_min + 0.01, LEG.q_max - 0.01)}
+
+
+@settings(max_examples=200, deadline=None)
+@given(**REACH)
+def test_jacobian_matches_finite_differences(q_front, q_rear):
+    j = np.array(LEG.jacobian(q_front, q_rear))
+    e = 1e-6
+    fd = np.empty((2, 2))
+    for col, (df, dr) in enumerate(((e, 0.0), (0.0, e))):
+        plus = np.array(LEG.forward(q_front + df, q_rear + dr))
+        minus = np.array(LEG.forward(q_front - df, q_rear - dr))
+        fd[:, col] = (plus - minus) / (2 * e)
+    assert np.allclose(j, fd, atol=1e-7)
+
+
+@settings(max_examples=200, deadline=None)
+@given(f_l=st.floats(-200.0, 200.0), f_x=st.floats(-100.0, 100.0),
+       direction=st.floats(0.0, 2.0 * math.pi), **REACH)
+def test_static_torques_do_the_virtual_work_of_the_load(q_front, q_rear, f_l, f_x, direction):
+    """The torques do the load's work: tau . dq = f_x dx + f_l dl, for any small dq."""
+    dq_f, dq_r = 1e-5 * math.cos(direction), 1e-5 * math.sin(direction)
+    tau_f, tau_r = LEG.static_torques(q_front, q_rear, f_l, f_x)
+    x0, l0 = LEG.forward(q_front - 0.5 * dq_f, q_rear - 0.5 * dq_r)
+    x1, l1 = LEG.forward(q_front + 0.5 * dq_f, q_rear + 0.5 * dq_r)
+    work_load = f_x * (x1 - x0) + f_l * (l1 - l0)
+    # Central difference: the error is third order in dq (plus rounding).
+    tol = 1e-12 * (abs(f_l) + abs(f_x) + 1.0)
+    assert tau_f * dq_f + tau_r * dq_r == pytest.approx(work_load, abs=tol)
+
+
+def test_weight_share_needs_positive_hip_torques_over_the_height_range():
+    """Carrying the body pushes each thigh down (towards larger q); figures in docs/legs.md."""
+    share = P.body_mass * P.gravity / 2.0
+    for l in np.linspace(P.height_min, P.height_max, 8):
+        q = LEG.inverse(l)
+        tau_f, tau_r = LEG.static_torques(*q, share)
+        assert tau_f == pytest.approx(tau_r) and 6.0 < tau_f < 12.0
+
+
+@settings(max_examples=100, deadline=None)
+@given(l=st.floats(P.height_min, P.height_max), l_dot=st.floats(-1.0, 1.0),
+       x_dot=st.floats(-0.5, 0.5))
+def test_hip_rates_invert_the_jacobian(l, l_dot, x_dot):
+    q = LEG.inverse(l)
+    rates = LEG.hip_rates(*q, l_dot, x_dot)
+    assert LEG.height_rate(*q, *rates) == pytest.approx(l_dot, abs=1e-9)
+    j = np.array(LEG.jacobian(*q))
+    assert j @ np.array(rates) == pytest.approx([x_dot, l_dot], abs=1e-9)
+
+
+@settings(max_examples=200, deadline=None)
+@given(**REACH)
+def test_knee_angles_close_the_chain(q_front, q_rear):
+    """Thigh then shank at (hip angle + knee angle) ends on the axle, for both knees."""
+    k_f, k_r = LEG.knee_angles(q_front, q_rear)
+    x, l = LEG.forward(q_front, q_rear)
+    xc, zc = x + LEG.com_x, LEG.com_height - l
+    h, a, b = 0.5 * LEG.hip_spacing, LEG.thigh, LEG.shank
+    front = (h + a * math.cos(q_front) + b * math.cos(q_front + k_f),
+             -a * math.sin(q_front) - b * math.sin(q_front + k_f))
+    rear = (-h - a * math.cos(q_rear) - b * math.cos(q_rear + k_r),
+            -a * math.sin(q_rear) - b * math.sin(q_rear + k_r))
+    assert front == pytest.approx((xc, zc), abs=1e-12)
+    assert rear == pytest.approx((xc, zc), abs=1e-12)
+
+
+def test_out_of_reach_gives_nan_everywhere():
+    for q in ((2.5, 0.5), (math.nan, 0.5)):
+        assert LEG.jacobian(*q) is None
+        assert all(math.isnan(v) for v in LEG.static_torques(*q, 50.0))
+        assert all(math.isnan(v) for v in LEG.knee_angles(*q))
+        assert all(math.isnan(v) for v in LEG.hip_rates(*q, 0.1))
+        assert math.isnan(LEG.height_rate(*q, 0.1, 0.1))
+
+
+@settings(max_examples=300, deadline=None)
+@given(q_front=st.floats(LEG.q_min, LEG.q_max), q_rear=st.floats(LEG.q_min, LEG.q_max))
+def test_knee_angles_walk_both_open_chains_to_the_axle(q_front, q_rear):
+    k_front, k_rear = LEG.knee_angles(q_front, q_rear)
+    if not LEG.in_reach(q_front, q_rear):
+        assert math.isnan(k_front) and math.isnan(k_rear)
+        return
+    xc, zc = LEG.axle(q_front, q_rear)
+    h, a, b = 0.5 * LEG.hip_spacing, LEG.thigh, LEG.shank
+    # Front chain: thigh at q below the forward horizontal, shank at q + knee.
+    s = q_front + k_front
+    front = (h + a * math.cos(q_front) + b * math.cos(s),
+             -a * math.sin(q_front) - b * math.sin(s))
+    # Rear chain, mirrored: angles below the backward horizontal.
+    s = q_rear + k_rear
+    rear = (-h - a * math.cos(q_rear) - b * math.cos(s),
+            -a * math.sin(q_rear) - b * math.sin(s))
+    assert front == pytest.approx((xc, zc), abs=1e-9)
+    assert rear == pytest.approx((xc, zc), abs=1e-9)
+    assert LEG.forward(q_front, q_rear) == pytest.approx((xc - LEG.com_x, LEG.com_height - zc))
+
+
+def test_knees_bend_less_as_the_robot_rises():
+    low = LEG.knee_angles(*LEG.inverse(P.height_min))
+    high = LEG.knee_angles(*LEG.inverse(P.height_max))
+    assert low[0] == pytest.approx(low[1]) and high[0] == pytest.approx(high[1])
+    assert high[0] < low[0] < math.pi

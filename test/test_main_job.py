@@ -17,10 +17,14 @@ import sys
 import time
 from types import SimpleNamespace
 
+import numpy as np
 import pytest
-from wheelleg_balance.core.teleop import map_joy, TeleopConfig
-from wheelleg_balance.tools import main_job
-from wheelleg_balance.tools.joy_script import joy_arrays, JoyScript, load_mapping, PadMapping
+from wheelleg_balance.core.teleop import map_joy, Teleop, TeleopConfig
+from wheelleg_balance.validation.paper import table
+from wheelleg_balance.validation.paper.joy_script import (
+    check, joy_arrays, JoyScript, load_mapping, PadMapping)
+from wheelleg_balance.validation.paper.main_job import cli, evaluate, params, scenarios
+from wheelleg_balance.validation.paper.main_job.record import Trace
 import yaml
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
@@ -90,17 +94,65 @@ def test_bad_scripts_are_refused(doc):
         JoyScript.from_dict(doc)
 
 
-@pytest.mark.parametrize('exp', [e for e in main_job.EXPERIMENTS if e.joy], ids=lambda e: e.name)
+@pytest.mark.parametrize('exp', [e for e in scenarios.SCENARIOS if e.joy], ids=lambda e: e.name)
 def test_scripted_sticks_give_the_intended_commands_through_teleop(exp):
     """main_job's physical steps -> deflections -> Joy -> core.teleop: the same v and w."""
     cfg = _teleop_config(XBOX)
     pad = load_mapping(XBOX)
-    script = JoyScript.from_dict(main_job.joy_script_doc(exp, main_job.teleop_scales(XBOX)))
-    for (t0, t1, v, w) in main_job._joy_segments(exp):
+    script = JoyScript.from_dict(params.joy_script_doc(exp, params.teleop_scales(XBOX)))
+    for (t0, t1, v, w) in params.joy_segments(exp):
         axes, buttons = joy_arrays(script.state(0.5 * (t0 + t1)), pad)
         x_dot, yaw_rate = map_joy(axes, buttons, cfg)
         assert x_dot == pytest.approx(v, abs=1e-3)
         assert yaw_rate == pytest.approx(w, abs=1e-3)
+
+
+def test_scripted_height_presses_reach_teleop_as_the_heights_in_order():
+    """The height run's presses -> joy_script's buttons -> core.teleop: each height, once."""
+    exp = scenarios.BY_NAME['height']
+    pad = load_mapping(XBOX)
+    script = JoyScript.from_dict(params.joy_script_doc(exp, params.teleop_scales(XBOX)))
+    teleop = Teleop(_teleop_config(XBOX))
+    sent = []
+    for k in range(int(exp.joy_end / 0.05)):      # the pad driver's 20 Hz
+        t = 0.05 * k
+        teleop.on_joy(*joy_arrays(script.state(t), pad), t)
+        teleop.tick(t)
+        h = teleop.take_height()
+        if h is not None:
+            sent.append((t, h))
+    assert [h for _, h in sent] == [0.70, 0.52, 0.37, 0.52, 0.70]
+    assert [t for t, _ in sent] == pytest.approx([t for t, _ in exp.height_presses], abs=0.06)
+
+
+def test_a_step_presses_heights_combinations_and_buttons_for_its_own_duration():
+    pad = load_mapping(XBOX)           # Y 0.70 m, START arms, BACK disarms, LB the deadman
+    script = JoyScript.from_dict({'end': 5.0, 'steps': [
+        {'t': 0.0, 'arm': True}, {'t': 1.0, 'height': 0.7, 'linear': 0.5},
+        {'t': 1.5, 'buttons': [12]}, {'t': 2.0, 'arm': False, 'height_axis': -0.5},
+        {'t': 3.0}]})
+    check(script, pad)
+
+    def held(t):
+        axes, buttons = joy_arrays(script.state(t), pad)
+        return {i for i, b in enumerate(buttons) if b}, axes
+    assert held(0.5)[0] == {pad.enable_button} | set(pad.arm_buttons)
+    assert held(1.2)[0] == {pad.enable_button, pad.height_button(0.70)}
+    assert held(1.7) == ({pad.enable_button, 12}, held(1.7)[1])
+    assert held(1.7)[1][pad.axis_linear] == 0.5              # the stick carries over ...
+    assert held(2.5)[0] == {pad.enable_button} | set(pad.disarm_buttons)
+    assert held(3.5)[0] == {pad.enable_button}               # ... the presses do not
+    assert held(3.5)[1][pad.axis_height] == -0.5
+    with pytest.raises(ValueError, match='0.6'):
+        check(JoyScript.from_dict({'steps': [{'t': 0.0, 'height': 0.6}]}), pad)
+    with pytest.raises(ValueError):
+        JoyScript.from_dict({'steps': [{'t': 0.0, 'buttons': [-1]}]})
+
+
+def test_joy_segments_merge_the_steps_a_button_press_splits():
+    exp = scenarios.BY_NAME['height']
+    drives = [s for s in params.joy_segments(exp) if s[2] != 0.0]
+    assert drives == [(5.0, 15.0, 0.3, 0.0), (15.0, 25.0, -0.3, 0.0)]
 
 
 @pytest.mark.ros
@@ -118,7 +170,7 @@ def test_joy_script_publishes_the_script_once_started(tmp_path):
     domain = 1 + (os.getpid() * 11 + 5) % 100
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
                PYTHONPATH=str(REPO) + os.pathsep + os.environ.get('PYTHONPATH', ''))
-    proc = subprocess.Popen([sys.executable, '-m', 'wheelleg_balance.tools.joy_script',
+    proc = subprocess.Popen([sys.executable, '-m', 'wheelleg_balance.validation.paper.joy_script',
                              '--config', str(XBOX), '--script', str(script), '--wait-start',
                              '--exit'], env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
@@ -169,22 +221,42 @@ def test_joy_script_publishes_the_script_once_started(tmp_path):
 # sim_node's ground truth and balance_node's ~/state layouts (docs/simulation.md,
 # docs/balance_node.md).
 GT = ['time', 'theta', 'theta_dot', 'x', 'y', 'x_dot', 'yaw', 'yaw_rate', 'roll', 'l',
-      'tau_left', 'tau_right']
+      'tau_left', 'tau_right', 'tail_contact', 'body_contact']
 ST = ['theta', 'theta_dot', 'x', 'x_dot', 'yaw_rate', 'd_hat', 'l', 'u', 'tau_left',
-      'tau_right', 'controller', 'mode', 'x_dot_ref', 'yaw_rate_ref']
+      'tau_right', 'controller', 'mode', 'x_dot_ref', 'yaw_rate_ref', 'roll', 'l_ref',
+      'l_target']
+#: Sim time at the start of balancing in the synthetic runs [s] (main_job/params.sim_time(0)).
+T0_SIM = params.sim_time(0.0)
+
+
+def _run(duration, truth, state=None, t_arm=-2.5, sim_shift=0.0):
+    """
+    Make a 100 Hz recording: ground truth and ~/state from functions of t [s] (dicts).
+
+    Balancing starts at t = 0 (receipt times), armed at t_arm; sim time is T0_SIM + t +
+    sim_shift (a shift: balancing started that much earlier in sim time than planned).
+    Fields the functions leave out: 0, l = 0.37 m, mode BALANCING from t = 0.
+    """
+    gt, st = [], []
+    for k in range(int(round((t_arm - 1.0) * 100)), int(duration * 100)):
+        t = 0.01 * k
+        g = dict.fromkeys(GT, 0.0)
+        g.update(time=T0_SIM + t + sim_shift, l=0.37)
+        g.update(truth(t))
+        gt.append((t,) + tuple(g[n] for n in GT))
+        r = dict.fromkeys(ST, 0.0)
+        r.update(theta=g['theta'], l=g['l'], l_ref=g['l'], mode=0.0 if t < 0 else 1.0)
+        r.update(state(t) if state else {})
+        st.append((t,) + tuple(r[n] for n in ST))
+    rec = SimpleNamespace(gt=gt, gt_labels=GT, state=st, state_labels=ST, cmd=[], height=[])
+    return Trace(rec, 0.0, duration, t_arm)
 
 
 def _synthetic_run(theta_of_t, duration=4.0, fault_at=None):
-    """Make a 100 Hz recording with the true pitch theta_of_t(t) [rad]; armed at t = 0."""
-    gt, st = [], []
-    for k in range(-50, int(duration * 100)):
-        t = 0.01 * k
-        th = theta_of_t(t)
-        gt.append((t, 3.5 + t, th, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.37, 0.0, 0.0))
-        mode = 0 if t < 0 else (2 if fault_at is not None and t >= fault_at else 1)
-        st.append((t, th, 0.0, 0.0, 0.0, 0.0, 0.0, 0.37, 0.0, 0.0, 0.0, 0.0, mode, 0.0, 0.0))
-    rec = SimpleNamespace(gt=gt, gt_labels=GT, state=st, state_labels=ST, cmd=[])
-    return main_job.Trace(rec, 0.0, duration)
+    """Make a recording with the true pitch theta_of_t(t) [rad]; balancing from t = 0."""
+    def state(t):
+        return {'mode': 2.0 if fault_at is not None and t >= fault_at else float(t >= 0)}
+    return _run(duration, lambda t: {'theta': theta_of_t(t)}, state)
 
 
 def _rise(t, overshoot=0.1):
@@ -196,7 +268,7 @@ def _rise(t, overshoot=0.1):
 
 
 def test_a_clean_start_up_passes_and_its_overshoot_is_measured():
-    res = main_job.evaluate(main_job.EXPERIMENT_BY_NAME['startup'], _synthetic_run(_rise), [])
+    res = evaluate.evaluate(scenarios.BY_NAME['startup'], _synthetic_run(_rise), [])
     assert res['passed'], res['criteria']
     assert res['metrics']['overshoot_deg'] == pytest.approx(
         -math.degrees(min(_rise(0.01 * k) for k in range(400))), abs=0.05)
@@ -205,27 +277,88 @@ def test_a_clean_start_up_passes_and_its_overshoot_is_measured():
 def test_a_start_up_that_falls_back_on_the_tail_fails():
     def back(t):
         return _rise(t) if t < 1.5 else math.radians(36.0)
-    res = main_job.evaluate(main_job.EXPERIMENT_BY_NAME['startup'], _synthetic_run(back), [])
+    res = evaluate.evaluate(scenarios.BY_NAME['startup'], _synthetic_run(back), [])
     failed = {c['name'] for c in res['criteria'] if not c['ok']}
     assert 'off the tail' in failed and not res['passed']
 
 
 def test_a_fault_fails_even_if_the_pitch_looks_fine():
-    res = main_job.evaluate(main_job.EXPERIMENT_BY_NAME['startup'],
+    res = evaluate.evaluate(scenarios.BY_NAME['startup'],
                             _synthetic_run(_rise, fault_at=2.0), [])
     assert {c['name'] for c in res['criteria'] if not c['ok']} == {'stays up'}
 
 
 def test_a_robot_that_never_rises_fails():
-    res = main_job.evaluate(main_job.EXPERIMENT_BY_NAME['startup'],
+    res = evaluate.evaluate(scenarios.BY_NAME['startup'],
                             _synthetic_run(lambda t: math.radians(36.0)), [])
     assert 'rises' in {c['name'] for c in res['criteria'] if not c['ok']}
 
 
 def test_every_experiment_has_an_evaluator_and_stated_bounds():
-    assert {e.kind for e in main_job.EXPERIMENTS} <= set(main_job.EVALUATORS)
-    assert [e.figure for e in main_job.EXPERIMENTS if e.name != 'startup_lqr'] == [
-        'Fig. %d' % n for n in (3, 3, 3, 4, 5, 6, 7, 8, 9, 10)]
+    assert {e.kind for e in scenarios.SCENARIOS} <= set(evaluate.EVALUATORS)
+    assert [e.figure for e in scenarios.SCENARIOS if e.name != 'startup_lqr'] == [
+        'Fig. %d' % n for n in (3, 3, 3, 4, 5, 6, 7, 8, 9, 10, 10)] + ['']
+
+
+# ------------------------------------------------------------------------------ the table
+
+def _from_the_table(res, entry):
+    """Assert that a run's criteria, metrics and paper quotes are the table's entry's."""
+    judging = entry.main_job
+    bounds = {(c.name, b) for c in table.MAIN_JOB_COMMON.criteria + judging.criteria
+              for b in (c.bound,) + tuple(c.unmet.values())}
+    assert {(c['name'], c['bound']) for c in res['criteria']} <= bounds
+    assert res['metrics'] and set(res['metrics']) <= set(table.metric_names(entry, 'main_job'))
+    quoted = [(q, p) for q, p, _ in res['compare']]
+    assert quoted and quoted == [(c.quantity, c.paper) for c in judging.compare][:len(quoted)]
+    assert (res['experiment'], res['title'], res['figure'], res['paper']) == (
+        entry.name, entry.title, entry.figure, entry.paper)
+
+
+def test_main_job_runs_the_tables_entries_in_table_order(capsys):
+    names = [e.name for e in table.for_runner('main_job')]
+    assert [s.name for s in scenarios.SCENARIOS] == names
+    assert all(s.entry is table.BY_NAME[s.name] for s in scenarios.SCENARIOS)
+    assert cli.main(['--list']) == 0
+    assert [line.split()[0] for line in capsys.readouterr().out.splitlines()] == names
+    # The four of them that model (1) runs too, and main_job's own.
+    assert {e.name for e in table.for_runner('model1')} & set(names) == {
+        'startup', 'standing', 'height', 'rotate'}
+
+
+def test_a_start_up_is_judged_by_the_tables_bounds(monkeypatch):
+    entry = table.BY_NAME['startup']
+    res = evaluate.evaluate(scenarios.BY_NAME['startup'], _synthetic_run(_rise), [])
+    _from_the_table(res, entry)
+    assert [c['name'] for c in res['criteria']] == ['rises', 'stays up', 'off the tail',
+                                                    'settles']
+    settle = res['metrics']['settle_s']
+    assert 0.0 < settle < 1.0
+    # A tighter bound in the table fails the same run.
+    monkeypatch.setitem(entry.main_job.criterion('settles').limits, 'settle_s', 0.5 * settle)
+    res = evaluate.evaluate(scenarios.BY_NAME['startup'], _synthetic_run(_rise), [])
+    assert {c['name'] for c in res['criteria'] if not c['ok']} == {'settles'}
+
+
+def test_a_clean_standing_run_passes_the_tables_criteria():
+    entry = table.BY_NAME['standing']
+    res = evaluate.evaluate(scenarios.BY_NAME['standing'], _synthetic_run(_rise, 13.0), [])
+    assert res['passed'], res['criteria']
+    _from_the_table(res, entry)
+    assert [c['name'] for c in res['criteria']] == [
+        c.name for c in table.MAIN_JOB_COMMON.criteria if c.name not in ('ran', 'evaluated')
+    ] + [c.name for c in entry.main_job.criteria]
+
+
+def test_a_run_without_data_fails_with_the_tables_ran_criterion():
+    res = evaluate.evaluate(scenarios.BY_NAME['push'], None, [])
+    assert not res['passed']
+    assert res['criteria'] == [{'name': 'ran', 'bound': 'armed, balancing and recorded',
+                                'value': 'no data', 'ok': False}]
+
+
+def test_the_config_folder_holds_the_default_teleop_file():
+    assert (params.config_dir() / 'teleop_xbox.yaml').is_file()
 
 
 # ------------------------------------------------------------------------------ end to end
@@ -255,11 +388,11 @@ def test_start_up_and_standing_through_the_real_processes(tmp_path):
                PYTHONPATH=str(REPO) + os.pathsep + os.environ.get('PYTHONPATH', ''))
     out = tmp_path / 'job'
     proc = subprocess.run(
-        [sys.executable, '-m', 'wheelleg_balance.tools.main_job', '--only', 'startup,standing',
-         '--short', '--output', str(out), '--can-group',
+        [sys.executable, '-m', 'wheelleg_balance.validation.paper.main_job',
+         '--only', 'startup,standing', '--short', '--output', str(out), '--can-group',
          '239.75.%d.%d' % ((pid >> 8) % 256, pid % 256 or 1), '--udp-port',
          str(30000 + pid % 10000)],
-        env=env, cwd=str(REPO), capture_output=True, text=True, timeout=110)
+        env=env, cwd=str(REPO), capture_output=True, text=True, timeout=400)
     log = proc.stdout + proc.stderr
     assert proc.returncode == 0, log
     assert str(out) in proc.stdout.splitlines()[-1]          # prints the folder at the end
@@ -267,15 +400,21 @@ def test_start_up_and_standing_through_the_real_processes(tmp_path):
     assert [e['experiment'] for e in report['experiments']] == ['startup', 'standing']
     assert report['passed'], log
     assert (out / 'report.md').exists() and (out / 'startup' / 'startup.png').exists()
+    for r in report['experiments']:      # what main_job reports is what the table defines
+        _from_the_table(r, table.BY_NAME[r['experiment']])
 
-    # From the simulator's ground truth, not from main_job's verdict.
+    # From the simulator's ground truth, not from main_job's verdict; times are sim_node's
+    # (lockstep: the run is slower than real time on a loaded machine, the physics the same).
     for name, standing in (('startup', 4.0), ('standing', 13.0)):
         gt = _read(out / name / 'ground_truth.csv')
         state = _read(out / name / 'state.csv')
-        t_arm, t_disarm = _arm_time(state), _disarm_time(state)
+
+        def sim(receipt):
+            return float(np.interp(receipt, gt['receipt_time'], gt['time']))
+        t_arm, t_disarm = sim(_arm_time(state)), sim(_disarm_time(state))
         # While balancing only: after the disarm at the end the robot drops back onto its tail.
         rows = [(t - t_arm, math.degrees(th), x, v) for t, th, x, v in zip(
-            gt['receipt_time'], gt['theta'], gt['x'], gt['x_dot']) if t_arm <= t <= t_disarm]
+            gt['time'], gt['theta'], gt['x'], gt['x_dot']) if t_arm <= t <= t_disarm]
         t_end = rows[-1][0]
         assert t_end > standing - 0.5
         # Rises: from the tail (about 36 deg) to below 10 deg within 2 s.
@@ -294,3 +433,161 @@ def test_start_up_and_standing_through_the_real_processes(tmp_path):
             assert abs(last[-1][2] - last[0][2]) < 0.02
             assert abs(sum(r[3] for r in last) / len(last)) < 0.01
             assert max(abs(r[1]) for r in last) < 1.0
+
+
+# ------------------------------------------------------------------------------ new evaluators
+
+def _failed(res):
+    return {c['name'] for c in res['criteria'] if not c['ok']}
+
+
+def _bound(res, name):
+    return next(c['bound'] for c in res['criteria'] if c['name'] == name)
+
+
+def _driving(exp):
+    """x_dot(t) that follows the joystick's drives after 1 s, and x(t) from it [m/s, m]."""
+    segs = params.joy_segments(exp)
+
+    def v(t):
+        return next((s[2] for s in segs if s[0] + 1.0 <= t < s[1] + 1.0), 0.0)
+    return v
+
+
+def test_height_tracking_is_the_rms_of_true_minus_shaped_height():
+    exp = scenarios.BY_NAME['height']
+    v = _driving(exp)
+
+    def l_ref(t):
+        return 0.535 + 0.165 * math.sin(0.5 * t)   # between 0.37 and 0.70 m
+
+    def run(err):
+        return evaluate.evaluate(exp, _run(exp.duration, lambda t: {
+            'x_dot': v(t), 'l': l_ref(t) + err(t)}, lambda t: {'l_ref': l_ref(t)}), [])
+    res = run(lambda t: 0.02 * math.sin(3.0 * t))
+    assert res['passed'], res['criteria']
+    rms = res['metrics']['height_tracking_rms_m']
+    assert rms == pytest.approx(0.02 / math.sqrt(2.0), rel=0.03)
+    assert res['metrics']['height_presses'] == [0.70, 0.52, 0.37, 0.52, 0.70]
+    _from_the_table(res, table.BY_NAME['height'])
+    res = run(lambda t: math.copysign(0.04, math.sin(3.0 * t)))   # 4 cm off throughout
+    assert _failed(res) == {'tracks the height'}
+    assert res['metrics']['height_tracking_rms_m'] == pytest.approx(0.04, abs=1e-6)
+
+
+def _ramp_run(roll_on_ramp, x_speed=1.0, pitch_left=0.0):
+    """Drive at x_speed from 2 s over the ramp (foot 5 m); roll on it; the drop, pitch_left."""
+    exp = scenarios.BY_NAME['slope_levelled']
+    x_foot, x_top, _ = evaluate._ramp(exp)
+
+    def truth(t):
+        x = max(0.0, t - 2.0) * x_speed
+        t_top = 2.0 + x_top / x_speed if x_speed else math.inf
+        roll = math.radians(roll_on_ramp) if x_foot <= x < x_top else 0.0
+        theta = 0.0
+        if t >= t_top:   # the drop: a roll and pitch swing that dies out
+            decay = math.exp(-3.0 * (t - t_top))
+            roll = math.radians(12.0) * decay * math.cos(6.0 * (t - t_top))
+            theta = math.radians(0.5) * decay + math.radians(pitch_left)
+        return {'x': x, 'x_dot': x_speed if t > 2.0 else 0.0, 'roll': roll, 'theta': theta}
+    return exp, _run(exp.duration, truth)
+
+
+def test_slope_levelled_judges_the_roll_on_the_ramp_and_the_drop():
+    exp, tr = _ramp_run(roll_on_ramp=2.0)
+    res = evaluate.evaluate(exp, tr, [])
+    assert res['passed'], res['criteria']
+    m = res['metrics']
+    x_foot, x_top, h_top = evaluate._ramp(exp)
+    assert m['max_roll_on_ramp_deg'] == pytest.approx(2.0, abs=1e-6)
+    assert m['t_ramp_s'] == pytest.approx(2.0 + x_foot, abs=0.011)
+    assert m['t_top_s'] == pytest.approx(2.0 + x_top, abs=0.011)
+    assert m['t_down_s'] - m['t_top_s'] == pytest.approx(math.sqrt(2.0 * h_top / 9.81))
+    assert m['drop_roll_peak_deg'] == pytest.approx(12.0, abs=0.5)   # the first sample after
+    # 12 exp(-3 t) < 2 deg from t = ln(6) / 3 = 0.6 s on, give or take a swing.
+    assert 0.3 < m['drop_roll_back_s'] <= 0.6
+    _from_the_table(res, table.BY_NAME['slope_levelled'])
+    # 8 deg on the ramp: not level.
+    assert _failed(evaluate.evaluate(*_ramp_run(roll_on_ramp=8.0), [])) == {'level on the ramp'}
+    # A pitch that stays 4 deg off after the drop.
+    exp, tr = _ramp_run(2.0, pitch_left=4.0)
+    assert _failed(evaluate.evaluate(exp, tr, [])) == {'settles after the drop'}
+    # Never at the ramp: both fail, with the bound that says why.
+    res = evaluate.evaluate(*_ramp_run(2.0, x_speed=0.0), [])
+    assert _failed(res) == {'level on the ramp', 'settles after the drop'}
+    assert _bound(res, 'level on the ramp') == 'reaches the ramp'
+
+
+def _sit_run(contact_rate=0.3, first='tail', cut='body'):
+    """Balance; disarm at 5 s: lean to the tail, contact at 7 s; re-arm at 12 s; cut at 18 s."""
+    exp = scenarios.BY_NAME['sit_down']
+    tail = math.radians(36.0)
+
+    def truth(t):
+        g = {'x': 0.0}
+        if 5.0 <= t < 12.0:          # the lean: the rate falls to contact_rate at 7 s
+            s = min(t - 5.0, 2.0) / 2.0
+            g['theta'] = tail * s
+            g['theta_dot'] = contact_rate if t >= 6.9 and t < 7.0 else (
+                0.0 if t >= 7.0 else tail)
+            g['x'] = 0.4 * s
+            g['tail_contact' if first == 'tail' else 'body_contact'] = float(t >= 7.0)
+        elif t >= 18.0:              # the cut: falls backwards onto the body
+            g['theta'] = -min(3.0 * (t - 18.0) ** 2, 1.2)
+            g['theta_dot'] = -6.0 * (t - 18.0) if t < 18.63 else 0.0
+            g['x'] = 0.1 * min(t - 18.0, 1.0)
+            g['body_contact' if cut == 'body' else 'tail_contact'] = float(t >= 18.63)
+        return g
+
+    def state(t):
+        if t < 0.0:
+            return {'mode': 3.0}
+        mode = 1.0
+        if 5.0 <= t < 7.5:
+            mode = 4.0
+        elif 7.5 <= t < 12.0:
+            mode = 0.0
+        elif 12.0 <= t < 14.0:
+            mode = 3.0
+        elif t >= 18.0:
+            mode = 0.0
+        return {'mode': mode}
+    return exp, _run(exp.duration, truth, state)
+
+
+def test_sit_down_judges_the_contact_the_travel_and_shows_the_cut_beside_it():
+    exp, tr = _sit_run()
+    res = evaluate.evaluate(exp, tr, [])
+    assert res['passed'], res['criteria']
+    m = res['metrics']
+    assert (m['sit_down_contact'], m['sit_down_contact_s']) == ('tail', pytest.approx(2.0))
+    assert m['sit_down_contact_rate_radps'] == pytest.approx(0.3)
+    assert m['sit_down_travel_m'] == pytest.approx(0.4)
+    assert m['sit_down_time_s'] == pytest.approx(2.5)
+    assert m['cut_contact'] == 'body'
+    assert m['cut_contact_rate_radps'] == pytest.approx(6.0 * 0.62, abs=0.07)
+    assert m['cut_travel_m'] == pytest.approx(0.1)
+    assert {q: o for q, _, o in res['compare']}[
+        'first contact: sit-down / torque cut'] == 'tail / body'
+    _from_the_table(res, table.BY_NAME['sit_down'])
+    # The disarm ends the balancing the common criteria judge: the sit-down is no fault.
+    assert res['metrics']['t_fault_s'] is None
+    assert _failed(evaluate.evaluate(*_sit_run(contact_rate=1.2), [])) == {'gentle contact'}
+    assert _failed(evaluate.evaluate(*_sit_run(first='body'), [])) == {
+        'onto the tail', 'gentle contact'}
+
+
+def test_a_kick_before_balancing_fails_the_push_run_instead_of_crashing():
+    exp = scenarios.BY_NAME['push']
+
+    def kicked(t):   # 3 deg at each planned kick, gone with a 0.25 s time constant
+        return {'theta': sum(math.radians(3.0) * math.exp(-4.0 * (t - p[0]))
+                             for p in exp.pushes if t >= p[0])}
+    assert evaluate.evaluate(exp, _run(exp.duration, kicked), [])['passed']
+    # Balancing started 4 s late in sim time: the first kick at 0 s; 6 s: before the arm.
+    for shift in (4.0, 6.0):
+        res = evaluate.evaluate(exp, _run(exp.duration, kicked, sim_shift=shift), [])
+        assert _failed(res) == {'recovers from each kick'}
+        assert _bound(res, 'recovers from each kick') == table.BY_NAME[
+            'push'].main_job.criterion('recovers from each kick').unmet['late']
+        assert res['metrics']['kick_times_s'][0] == pytest.approx(4.0 - shift, abs=0.011)

@@ -116,13 +116,14 @@ def test_torques_are_finite_and_within_limits_for_any_input(
 def startup_overshoot_deg(d_hold_angle):
     """IDA-PBC (Table I, theta~ - d_hat) start-up from the tail; d = 2.2 deg, d_hat0 = 2.7."""
     from wheelleg_balance.core.simulation import simulate
+    from wheelleg_balance.validation.paper.experiments import overshoot_deg
     sc = Scenario(controller='ida_pbc', duration=6.0, imu_offset=math.radians(2.2),
                   d_hat0=math.radians(2.7))
     core = BalanceCore(RobotParams(), CoreConfig(d_hat0=sc.d_hat0))
     core.observer.d_hold_angle = d_hold_angle
     result = simulate(sc, core=core)
     assert not result.fell
-    return result.overshoot_deg(), math.degrees(result.d_hat[-1])
+    return overshoot_deg(result), math.degrees(result.d_hat[-1])
 
 
 def test_observer_holds_d_hat_while_lifting_off_the_tail():

@@ -248,6 +248,21 @@ def test_dji_torque_frames_never_raise_and_stay_in_range(taus):
             assert abs(codes[i] - wanted) <= 0.5 + 1e-9  # rounded to the nearest code
 
 
+def test_dji_esc_side_against_the_vectors():
+    # The ESC's side of the same layouts: a command decoded per ESC, feedback encoded.
+    assert DJI.decode_command(Frame(0x200, bytes.fromhex('10 00 00 00 00 00 C0 00'))) == \
+        {1: 4096, 2: 0, 3: 0, 4: -16384}
+    assert DJI.decode_command(Frame(0x1FF, bytes.fromhex('00 00 F0 00 00 00 00 00'))) == \
+        {5: 0, 6: -4096, 7: 0, 8: 0}
+    for frame in (Frame(0x201, bytes(8)), Frame(0x200, bytes(7)), Frame(0x200, bytes(8), True)):
+        assert DJI.decode_command(frame) is None
+    assert DJI.encode_feedback(1, 4096, 1000, -2048, 40) == \
+        Frame(0x201, bytes.fromhex('10 00 03 E8 F8 00 28 00'))
+    # Fields out of their range: the angle wraps (one rotor turn), the others clamp.
+    assert DJI.encode_feedback(2, 8192 + 5, 40000, -40000, 300) == \
+        Frame(0x202, bytes.fromhex('00 05 7F FF 80 00 FF 00'))
+
+
 def test_dji_enable_disable():
     assert DJI.enable_frames([1, 2]) == []
     assert DJI.disable_frames([1, 2]) == [Frame(0x200, bytes(8))]

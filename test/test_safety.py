@@ -4,9 +4,11 @@ import math
 from hypothesis import given, settings, strategies as st
 import pytest
 
+from wheelleg_balance.core.rate_limiter import limit_rate
+from wheelleg_balance.core.reference import ReferenceShaper
 from wheelleg_balance.core.safety import (
-    CAN_SEND, FALL, IMU_STALE, INTERNAL, JOINT_STATES_STALE, limit_rate, Mode, MOTOR_SILENT,
-    NON_FINITE, ReferenceShaper, SafetyLimits, SafetySupervisor, SensorSnapshot)
+    CAN_SEND, FALL, IMU_STALE, INTERNAL, JOINT_STATES_STALE, LOOP_STALL, Mode, MOTOR_SILENT,
+    NON_FINITE, POSE, ROLL, SafetyLimits, SafetySupervisor, SensorSnapshot)
 
 LIMITS = SafetyLimits(fall_angle=math.radians(45.0), imu_timeout=0.05,
                       joint_state_timeout=0.05, motor_timeout=0.05)
@@ -55,12 +57,62 @@ def test_disarmed_does_not_judge_motors_that_are_not_commanded():
     assert sup.conditions == ()
 
 
-@pytest.mark.parametrize('theta', [0.0, TAIL_REST, -0.5, math.radians(44.9)])
-def test_arm_accepted_inside_fall_angle_including_tail_rest(theta):
+@pytest.mark.parametrize('theta', [0.0, math.radians(9.0), TAIL_REST, math.radians(44.9)])
+def test_arm_accepted_upright_or_on_the_tail(theta):
     sup = SafetySupervisor(LIMITS)
     ok, reason = sup.arm(5.0, fresh(5.0, theta), {})
     assert ok, reason
     assert sup.mode is Mode.BALANCING and sup.torque_allowed
+
+
+@pytest.mark.parametrize('theta,theta_dot,roll', [
+    (-0.5, 0.0, 0.0),                    # leaning back: neither upright nor on the tail
+    # between the upright window and the tail's
+    (0.5 * (LIMITS.upright_pitch + LIMITS.tail_pitch - LIMITS.tail_tolerance), 0.0, 0.0),
+    (0.0, 1.0, 0.0),                     # upright but swinging: not still
+    (TAIL_REST, 0.0, math.radians(15.0)),  # on the tail but tipped sideways
+])
+def test_arm_refused_from_an_implausible_pose(theta, theta_dot, roll):
+    sup = SafetySupervisor(LIMITS)
+    s = fresh(5.0, theta)
+    s.theta_dot, s.roll = theta_dot, roll
+    ok, reason = sup.arm(5.0, s, {})
+    assert not ok and 'pose' in reason
+    assert codes(sup.conditions) == {POSE} and sup.mode is Mode.DISARMED
+
+
+def test_a_robot_lying_on_its_side_is_a_fault_and_cannot_arm():
+    """On its side the pitch reads 0: the roll tells (core/attitude.py)."""
+    sup = armed(10.0)
+    s = fresh(10.1)
+    s.roll = math.radians(90.0)
+    assert sup.update(10.1, s, replies(10.1)) is Mode.FAULT
+    assert codes(sup.faults) == {ROLL}
+    ok, reason = sup.arm(10.2, s, replies(10.2))
+    assert not ok and 'fall_roll_angle' in reason
+
+
+def test_homing_then_balancing_then_sitting_down():
+    sup = SafetySupervisor(LIMITS)
+    ok, reason = sup.start_homing(5.0, fresh(5.0, TAIL_REST), {})
+    assert ok and sup.mode is Mode.HOMING and not sup.torque_allowed
+    # The motors are commanded while homing: a silent one is a fault ...
+    assert sup.update(5.04, fresh(5.04, TAIL_REST), replies(5.04)) is Mode.HOMING
+    ok, reason = sup.arm(5.05, fresh(5.05, TAIL_REST), replies(5.05))
+    assert ok and sup.mode is Mode.BALANCING
+    assert sup.sit_down() and sup.mode is Mode.SITTING and sup.torque_allowed
+    assert not sup.sit_down()
+    # ... and while sitting down, as while balancing.
+    assert sup.update(5.2, fresh(5.2), {1: 5.2}) is Mode.FAULT
+    assert codes(sup.faults) == {MOTOR_SILENT}
+
+
+def test_a_reported_fault_latches_while_commanding_only():
+    sup = SafetySupervisor(LIMITS)
+    assert sup.report_fault(1.0, LOOP_STALL, 'stalled') is Mode.DISARMED
+    sup = armed(10.0)
+    assert sup.report_fault(10.1, LOOP_STALL, 'loop stalled 80 ms') is Mode.FAULT
+    assert codes(sup.faults) == {LOOP_STALL}
 
 
 @pytest.mark.parametrize('snapshot,code', [

@@ -200,15 +200,6 @@ def test_commanded_height_is_reached(target):
     assert leg.height(q[2], q[3]) == pytest.approx(target, abs=0.005)
 
 
-def test_height_schedule_is_followed():
-    sim = RobotSim(height_schedule=[(0.5, 0.37), (1.5, 0.55)])
-    sim.hold(0.0, z=1.0)
-    sim.step(0.0, 0.0, 1.0)
-    assert sim.ground_truth()['l'] == pytest.approx(0.46, abs=0.01)   # half way
-    sim.step(0.0, 0.0, 1.0)
-    assert sim.ground_truth()['l'] == pytest.approx(0.55, abs=0.005)
-
-
 def test_push_moves_the_robot_only_while_it_acts():
     sim = RobotSim(pushes=[Push(start=0.2, duration=0.2, force_x=-40.0)])
     gt = _run(sim, 0.19)
@@ -265,3 +256,87 @@ def test_non_finite_torque_is_zero_and_limits_hold():
     assert sim.wheel_torques() == (18.0, -18.0)
     with pytest.raises(ValueError):
         sim.set_height(0.9)   # beyond the legs' reach
+
+
+# ---- hips driven by torque (legs='motors') -------------------------------------------------
+
+def test_hip_torque_motors_carry_the_body_and_follow_the_sign_convention():
+    from wheelleg_balance.sim.robot_sim import HIP_TORQUE_LIMIT
+    sim = RobotSim(legs='motors')
+    sim.reset('tail')
+    assert sim.ground_truth()['l'] == pytest.approx(0.37, abs=0.005)   # settled, held
+    sim.reset('pitch', pitch=0.0)
+    sim.step(0.0, 0.0, 0.2, hip_torques=(0.0,) * 4)
+    assert sim.ground_truth()['l'] < 0.30      # upright on its wheels, unpowered: it sinks
+    sim.reset('pitch', pitch=0.0)
+    tau = sim.leg.static_torques(*sim.leg.inverse(0.37), 11.45 * G / 2.0)
+    sim.step(0.0, 0.0, 0.2, hip_torques=tau + tau)
+    assert sim.ground_truth()['l'] == pytest.approx(0.37, abs=0.01)   # J^T f carries it
+    # On the stand, a positive torque turns every hip's q up (the leg extends).
+    sim = RobotSim(legs='motors', height=0.45)
+    sim.hold(0.0, z=1.0)
+    q0 = sim.leg_angles()
+    sim.step(0.0, 0.0, 0.1, hip_torques=(3.0,) * 4)
+    assert all(q > a + 0.05 for q, a in zip(sim.leg_angles(), q0))
+    sim.step(0.0, 0.0, 0.002, hip_torques=(100.0, -100.0, math.nan, 1.0))
+    assert sim.leg_torques() == (HIP_TORQUE_LIMIT, -HIP_TORQUE_LIMIT, 0.0, 1.0)
+
+
+def test_servo_mode_ignores_hip_torques():
+    sim = RobotSim()
+    sim.hold(0.0, z=1.0)
+    sim.step(0.0, 0.0, 0.5, hip_torques=(18.0,) * 4)
+    assert sim.ground_truth()['l'] == pytest.approx(0.37, abs=0.005)
+    with pytest.raises(ValueError):
+        RobotSim(legs='knees')
+
+
+def test_folded_pose_rests_on_the_tail_with_limp_legs_on_their_stops():
+    sim = RobotSim(legs='motors')
+    sim.reset('folded')
+    gt = sim.ground_truth()
+    assert all(q == pytest.approx(sim.leg.q_min, abs=0.02) for q in sim.leg_angles())
+    assert gt['l'] < 0.30 and gt['tail_contact'] == 1.0 and gt['body_contact'] == 0.0
+    assert 0.1 < gt['theta'] < 0.3          # the folded rest: about 10 deg
+    sim.step(0.0, 0.0, 0.5, hip_torques=(0.0,) * 4)
+    assert sim.ground_truth()['theta'] == pytest.approx(gt['theta'], abs=1e-3)   # settled
+    with pytest.raises(ValueError):
+        RobotSim().reset('folded')          # the servos would hold the legs
+
+
+def test_contact_fields_show_what_touches_the_floor():
+    sim = RobotSim()
+    sim.reset('tail')
+    assert sim.ground_truth()['tail_contact'] == 1.0
+    sim.reset('pitch', pitch=0.0)
+    assert sim.ground_truth()['tail_contact'] == 0.0
+    sim.reset('pitch', pitch=-0.3)          # unpowered, it falls backwards onto the body
+    for _ in range(1000):
+        sim.step(0.0, 0.0, 0.002)
+        if sim.ground_truth()['body_contact']:
+            break
+    gt = sim.ground_truth()
+    assert gt['body_contact'] == 1.0 and gt['tail_contact'] == 0.0 and gt['theta'] < -0.5
+
+
+def test_robot_motors_route_frames_by_bus_and_id_and_evaluate_every_step():
+    from wheelleg_balance.core.protocols.mit import MitProtocol
+    from wheelleg_balance.sim.robot_motors import default_specs, RobotMotors
+    mit = MitProtocol()
+    sim = RobotSim(legs='motors', height=0.45)
+    sim.hold(0.0, z=1.0)
+    motors = RobotMotors(sim, default_specs(hip_bus=1))
+    assert motors.handle(mit.enable_frames([3])[0], bus=0) is None    # hips on bus 1
+    assert motors.handle(mit.enable_frames([1])[0], bus=0) is not None
+    q = sim.leg_angles()
+    # Stiff holds of the left hips at their present angles: the impedance law, evaluated at
+    # each 0.5 ms step, keeps them there against the hanging wheel; the right leg swings.
+    for i, q_i in zip((3, 4), q):
+        assert motors.handle(mit.enable_frames([i])[0], bus=1) is not None
+        assert motors.handle(mit.command_frame(i, q_i, 0.0, 200.0, 2.0, 0.0), bus=1)
+    motors.step(0.5)
+    # Within the droop of the hanging wheel (about 3 N m per hip over kp 200: 16 mrad).
+    assert sim.leg_angles()[:2] == pytest.approx(q[:2], abs=0.025)
+    assert abs(sim.leg_angles()[2] - q[2]) > 0.05
+    with pytest.raises(ValueError):
+        RobotMotors(RobotSim(), default_specs())       # hip motors need legs='motors'

@@ -14,6 +14,7 @@ from wheelleg_balance.core.params import RobotParams
 from wheelleg_balance.core.pipeline import BalanceCore, CoreConfig
 from wheelleg_balance.core.simulation import (
     Plant, plant_accel, Scenario, simulate, SmoothSchedule, TAIL_ANGLE)
+from wheelleg_balance.validation.paper.experiments import peak_torque_nm, settling_time_s
 
 P = RobotParams()
 
@@ -125,7 +126,8 @@ def test_sensors_are_what_the_robot_reports():
     meas = plant.sensors(0.0)
     assert meas.theta_meas == pytest.approx(0.14)
     w_l, w_r = meas.wheel_vel_left, meas.wheel_vel_right
-    # Odometry of Sec. V-A with the pitch correction of DESIGN.md recovers speed and yaw rate.
+    # Odometry of Sec. V-A with the pitch-rate correction (docs/interface.md) recovers speed
+    # and yaw rate.
     assert P.wheel_radius * ((w_l + w_r) / 2 + meas.theta_dot) == pytest.approx(0.5)
     assert P.wheel_radius * (w_r - w_l) / P.wheel_separation == pytest.approx(0.4)
     assert meas.l == 0.6
@@ -136,8 +138,8 @@ def test_ida_pbc_start_up_from_the_tail_does_not_fall():
     assert not r.fell
     assert r.theta[0] == pytest.approx(TAIL_ANGLE)
     assert np.max(np.abs(r.theta[-250:])) < math.radians(1.0)  # upright over the last 0.5 s
-    assert r.settling_time_s() is not None
-    assert r.peak_torque_nm() <= 12.0 + 1e-9
+    assert settling_time_s(r) is not None
+    assert peak_torque_nm(r) <= 12.0 + 1e-9
 
 
 def test_no_torque_means_a_fall_is_reported():
@@ -145,7 +147,7 @@ def test_no_torque_means_a_fall_is_reported():
     r = simulate(Scenario(controller='ida_pbc', theta0=-0.05, max_wheel_torque=0.0,
                           duration=5.0))
     assert r.fell and r.fall_time is not None and r.fall_time < 5.0
-    assert r.settling_time_s() is None
+    assert settling_time_s(r) is None
 
 
 def test_delay_and_motor_limit_act_on_the_applied_torque():
@@ -154,8 +156,8 @@ def test_delay_and_motor_limit_act_on_the_applied_torque():
     clipped = simulate(Scenario(controller='ida_pbc', duration=0.3, motor_torque_limit=6.0))
     assert abs(base.u[0]) > 50.0  # the start-up pushes hard from the first tick
     assert late.u[0] == 0.0 and late.u[1] == pytest.approx(base.u[0])
-    assert base.peak_torque_nm() > 6.5
-    assert clipped.peak_torque_nm() == pytest.approx(6.0)
+    assert peak_torque_nm(base) > 6.5
+    assert peak_torque_nm(clipped) == pytest.approx(6.0)
 
 
 @pytest.mark.parametrize('kw', [

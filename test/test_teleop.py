@@ -1,5 +1,8 @@
 """
-core/teleop.py: teleop_twist_joy's mapping plus deadzone, joystick timeout and rate limits.
+core/teleop.py: teleop_twist_joy's mapping, deadzone, timeout, rate limits, height and arming.
+
+The height target for cmd_height, and arming by button combinations with the deadman, beside
+the mapping to cmd_vel.
 
 Pure Python, no ROS: samples are (axes, buttons) lists and times are plain floats.
 """
@@ -9,8 +12,9 @@ import math
 from hypothesis import given, settings, strategies as st
 import pytest
 
-from wheelleg_balance.core.teleop import (apply_deadzone, map_joy, MAX_TICK_DT, RateLimiter,
-                                          Teleop, TeleopConfig)
+from wheelleg_balance.core.rate_limiter import RateLimiter
+from wheelleg_balance.core.teleop import (apply_deadzone, map_joy, MAX_TICK_DT, pad_combo, Teleop,
+                                          TeleopConfig)
 
 DT = 0.02   # 50 Hz, the node's default publish rate
 # A small layout: enable button 0, turbo 1, x on axis 1, yaw on axis 3; no shaping unless asked.
@@ -18,7 +22,9 @@ CFG = TeleopConfig(enable_button=0, enable_turbo_button=1, require_enable_button
                    axis_linear_x=1, scale_linear_x=0.5, scale_linear_turbo_x=1.0,
                    axis_angular_yaw=3, scale_angular_yaw=1.5, scale_angular_turbo_yaw=2.88,
                    inverted_reverse=False, deadzone=0.0, joy_timeout=0.5, max_linear_accel=0.0,
-                   max_angular_accel=0.0, max_linear_jerk=0.0, max_angular_jerk=0.0)
+                   max_angular_accel=0.0, max_linear_jerk=0.0, max_angular_jerk=0.0,
+                   height_buttons=[], heights=[], axis_height=-1, arm_buttons=[],
+                   disarm_buttons=[])
 ENABLE = [1, 0]
 TURBO = [0, 1]
 NONE = [0, 0]
@@ -261,6 +267,15 @@ def test_default_configuration_is_valid():
     ({'enable_button': -2}, 'enable_button'),
     ({'enable_button': -1, 'enable_turbo_button': -1}, 'never'),
     ({'inverted_reverse': 1}, 'inverted_reverse'),
+    ({'height_buttons': [3]}, 'one entry each'),
+    ({'height_buttons': [3], 'heights': [0.9]}, 'outside'),
+    ({'height_min': 0.7, 'height_max': 0.5}, 'below'),
+    ({'height_buttons': [0], 'heights': [0.5]}, 'share'),          # the enable button
+    ({'height_buttons': [3, 3], 'heights': [0.5, 0.6]}, 'twice'),
+    ({'arm_buttons': [4], 'disarm_buttons': [4]}, 'share'),
+    ({'arm_buttons': [1]}, 'share'),                               # the turbo button
+    ({'arm_buttons': [4], 'enable_button': -1}, 'deadman'),
+    ({'axis_height': 3}, 'driving axis'),                          # the yaw axis
 ])
 def test_bad_configuration_is_reported_with_a_reason(change, word):
     problems = replace(CFG, **change).problems()
@@ -308,3 +323,121 @@ def test_fuzz_outputs_are_finite_and_within_the_scales(samples, idx, scales, dea
                 x, w = cmd
                 assert math.isfinite(x) and math.isfinite(w)
                 assert abs(x) <= x_bound and abs(w) <= w_bound
+
+
+# --- height target and arming from the pad -------------------------------------------------
+
+# Enable 0, turbo 1; height buttons 2 (0.70 m) and 3 (0.52 m), height axis 2; arm 4, disarm 5.
+PAD = replace(CFG, height_buttons=[2, 3], heights=[0.70, 0.52], axis_height=2,
+              scale_height=0.1, height_min=0.37, height_max=0.70, arm_buttons=[4],
+              disarm_buttons=[5], arm_hold_time=0.5)
+
+
+def pad(*held, height_axis=0.0):
+    """Return a PAD sample with the given buttons held."""
+    buttons = [0] * 6
+    for b in held:
+        buttons[b] = 1
+    return [0.0, 0.0, height_axis, 0.0], buttons
+
+
+def drive(teleop, t0, t1, sample, dt=DT):
+    """Feed ``sample`` and tick from t0 to t1; return [(t, height sent, arm request)]."""
+    out = []
+    for k in range(int(round((t1 - t0) / dt))):
+        t = t0 + k * dt
+        teleop.on_joy(*sample, t)
+        teleop.tick(t)
+        out.append((t, teleop.take_height(), teleop.take_arm()))
+    return out
+
+
+def sent(rows, k):
+    """Return the times and values sent in the rows: k = 1 the heights, k = 2 arm requests."""
+    return [(row[0], row[k]) for row in rows if row[k] is not None]
+
+
+def test_the_height_starts_at_the_minimum_and_is_sent_only_when_it_changes():
+    teleop = Teleop(PAD)
+    assert teleop.height == 0.37
+    assert sent(drive(teleop, 0.0, 1.0, pad(0)), 1) == []    # enabled, nothing pressed
+
+
+def test_a_height_button_press_sets_its_height_once_with_the_deadman_held():
+    teleop = Teleop(PAD)
+    rows = drive(teleop, 0.0, 0.2, pad(0)) + drive(teleop, 0.2, 1.0, pad(0, 2))
+    assert sent(rows, 1) == [(pytest.approx(0.2), 0.70)]      # a step: balance_node shapes it
+    rows = drive(teleop, 1.0, 1.2, pad(0)) + drive(teleop, 1.2, 1.4, pad(0, 3))
+    assert sent(rows, 1) == [(pytest.approx(1.2), 0.52)]
+    # Without the deadman a press does nothing, and holding it on while the deadman comes
+    # is no press either.
+    rows = drive(teleop, 1.4, 1.6, pad()) + drive(teleop, 1.6, 2.0, pad(2)) + \
+        drive(teleop, 2.0, 2.4, pad(0, 2))
+    assert sent(rows, 1) == [] and teleop.height == 0.52
+    # Turbo enables motion too, and with it the height buttons.
+    rows = drive(teleop, 2.4, 2.6, pad(1)) + drive(teleop, 2.6, 2.8, pad(1, 2))
+    assert sent(rows, 1) == [(pytest.approx(2.6), 0.70)]
+
+
+def test_the_height_axis_moves_the_target_at_its_rate_within_the_range():
+    teleop = Teleop(PAD)
+    rows = drive(teleop, 0.0, 1.0, pad(0, height_axis=1.0))
+    heights = [h for _, h in sent(rows, 1)]
+    assert heights == sorted(heights) and len(heights) == 49  # every tick but the first
+    assert heights[-1] == pytest.approx(0.37 + 0.1 * 0.98, abs=1e-9)
+    drive(teleop, 1.0, 5.0, pad(0, height_axis=1.0))
+    assert teleop.height == 0.70                               # clamped at height_max
+    drive(teleop, 5.0, 6.0, pad(0, height_axis=-0.5))          # half deflection down
+    assert teleop.height == pytest.approx(0.70 - 0.05, abs=0.002)
+    drive(teleop, 6.0, 7.0, pad(height_axis=-1.0))             # no deadman: stays
+    assert teleop.height == pytest.approx(0.65, abs=0.002)
+    # A silent joystick stops the motion at once.
+    teleop.on_joy(*pad(0, height_axis=1.0), 7.0)
+    for k in range(100):
+        teleop.tick(7.0 + 0.02 * k)
+    assert teleop.height == pytest.approx(0.65 + 0.1 * PAD.joy_timeout, abs=0.003)
+
+
+def test_the_arm_combination_with_the_deadman_asks_once_after_the_hold_time():
+    teleop = Teleop(PAD)
+    rows = drive(teleop, 0.0, 2.0, pad(0, 4))
+    assert sent(rows, 2) == [(pytest.approx(0.5), True)]      # once, after 0.5 s
+    rows = drive(teleop, 2.0, 2.2, pad(0)) + drive(teleop, 2.2, 3.0, pad(0, 5))
+    assert sent(rows, 2) == [(pytest.approx(2.7), False)]     # released, then disarm
+    # Too short, without the deadman, or both combinations at once: nothing.
+    rows = drive(teleop, 3.0, 3.4, pad(0, 4)) + drive(teleop, 3.4, 3.6, pad(0)) + \
+        drive(teleop, 3.6, 5.0, pad(4)) + drive(teleop, 5.0, 6.0, pad(0, 4, 5))
+    assert sent(rows, 2) == []
+    # A joystick that falls silent (joy_timeout 0.5 s) while the combination is held for its
+    # 1 s cancels it.
+    teleop = Teleop(replace(PAD, arm_hold_time=1.0))
+    teleop.on_joy(*pad(0, 4), 6.0)
+    for k in range(100):
+        teleop.tick(6.0 + 0.02 * k)
+    assert teleop.take_arm() is None
+
+
+def test_pad_combo_needs_every_button_of_a_combination():
+    cfg = replace(PAD, arm_buttons=[4, 5], disarm_buttons=[3])
+    assert pad_combo(pad(0, 4, 5)[1], cfg) is True
+    assert pad_combo(pad(0, 4)[1], cfg) is None
+    assert pad_combo(pad(0, 3)[1], cfg) is False
+    assert pad_combo(pad(4, 5)[1], cfg) is None                # no deadman
+    assert pad_combo(pad(0)[1], replace(cfg, arm_buttons=[], disarm_buttons=[])) is None
+    assert pad_combo([1, 0, 0, float('nan'), 1, 1], cfg) is True   # NaN: not pressed
+
+
+@settings(max_examples=100, deadline=None)
+@given(samples=st.lists(_sample, min_size=1, max_size=12),
+       dts=st.lists(st.floats(0.0, 0.3), min_size=1, max_size=8))
+def test_fuzz_the_height_stays_in_range_and_requests_are_booleans(samples, dts):
+    teleop = Teleop(PAD)
+    t = 0.0
+    for ax, bt in samples:
+        teleop.on_joy(ax, bt, t)
+        for dt in dts:
+            t += dt
+            teleop.tick(t)
+            h = teleop.take_height()
+            assert h is None or 0.37 <= h <= 0.70
+            assert teleop.take_arm() in (None, True, False)

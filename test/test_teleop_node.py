@@ -26,11 +26,13 @@ from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import Joy
+from std_msgs.msg import Float64
+from std_srvs.srv import SetBool
 
-from wheelleg_balance.core.teleop import TeleopConfig
-from wheelleg_balance.nodes.teleop_node import field_name, TeleopNode
+from wheelleg_balance.core.schema import from_flat, spec_by_name
+from wheelleg_balance.nodes.teleop_node import TeleopNode, TeleopNodeConfig
 # The polling helper of all the ROS tests (test/conftest.py says why it lives there).
-from wheelleg_balance.tools.fault_suite import wait_for
+from wheelleg_balance.validation.faults.rig import wait_for
 import yaml  # after wheelleg_balance: google order sorts it as third party
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
@@ -39,18 +41,24 @@ ENABLE, TURBO = 9, 10   # the node's defaults (SDL LEFTSHOULDER, RIGHTSHOULDER)
 AX_X, AX_YAW = 1, 2
 
 
-def joy_msg(x=0.0, yaw=0.0, enable=False, turbo=False):
+def joy_msg(x=0.0, yaw=0.0, enable=False, turbo=False, held=()):
     msg = Joy()
     axes = [0.0] * 6
     axes[AX_X], axes[AX_YAW] = x, yaw
     buttons = [0] * 15
     buttons[ENABLE], buttons[TURBO] = int(enable), int(turbo)
+    for b in held:
+        buttons[b] = 1
     msg.axes, msg.buttons = axes, buttons
     return msg
 
 
 class Operator(Node):
-    """Publishes Joy at 20 Hz (a joystick driver's autorepeat) and records cmd_vel."""
+    """
+    Publishes Joy at 20 Hz (a joystick driver's autorepeat), records cmd_vel and cmd_height.
+
+    It also stands in for balance_node's ~/arm service and records the requests.
+    """
 
     def __init__(self, context, stamped=True):
         super().__init__('teleop_tester', context=context)
@@ -60,8 +68,18 @@ class Operator(Node):
         self._lock = threading.Lock()
         self.pub = self.create_publisher(Joy, 'joy', 10)
         self.create_subscription(TwistStamped if stamped else Twist, 'cmd_vel', self._on_cmd, 50)
+        self.heights = []          # (monotonic receipt time, cmd_height [m])
+        self.arm_requests = []     # (monotonic time, data)
+        self.create_subscription(Float64, 'cmd_height', lambda m: self.heights.append(
+            (time.monotonic(), m.data)), 10)
+        self.create_service(SetBool, 'balance_node/arm', self._on_arm)
         self.create_timer(0.05, self._repeat)
         self.set_params = self.create_client(SetParameters, '/teleop_node/set_parameters')
+
+    def _on_arm(self, request, response):
+        self.arm_requests.append((time.monotonic(), request.data))
+        response.success, response.message = True, 'ok'
+        return response
 
     def _repeat(self):
         msg = self.joy
@@ -215,7 +233,7 @@ def test_parameters_through_the_set_parameters_service(make_ros):
         assert result.reason.strip(), name
         assert teleop.get_parameter(name).value == before, name
     assert 'turbo' in tester.set_parameter('enable_turbo_button', ENABLE).reason
-    assert teleop._teleop.cfg.enable_turbo_button == TURBO
+    assert teleop.teleop.cfg.enable_turbo_button == TURBO
 
 
 def test_plain_twist_when_not_stamped(make_ros):
@@ -224,6 +242,36 @@ def test_plain_twist_when_not_stamped(make_ros):
     # Turbo yaw scale: -2.88 rad/s (right turn), reached at 6 rad/s^2 in about 0.5 s.
     assert wait_for(lambda: any(c[2] == pytest.approx(-2.88) for c in tester.cmds()), 3.0)
     assert all(isinstance(c[3], Twist) for c in tester.cmds())
+
+
+def test_pad_sets_the_height_and_arms_and_disarms_with_the_deadman(make_ros):
+    tester = make_ros().tester
+    # The Xbox layout (the defaults): Y (3) 0.70 m, X (2) 0.52 m; START (6) arms, BACK (4)
+    # disarms, each with LB (9) held for 0.5 s.
+    tester.joy = joy_msg(held=(3, 6))                   # no deadman: nothing
+    time.sleep(1.0)
+    assert tester.heights == [] and tester.arm_requests == []
+    tester.joy = joy_msg(enable=True)
+    time.sleep(0.2)
+    tester.joy = joy_msg(enable=True, held=(3,))
+    assert wait_for(lambda: tester.heights, 3.0), 'no cmd_height'
+    time.sleep(0.3)
+    assert [h for _, h in tester.heights] == [0.70]     # once per press
+    tester.joy = joy_msg(enable=True, held=(6,))
+    t0 = time.monotonic()
+    assert wait_for(lambda: tester.arm_requests, 3.0), 'no arm request'
+    assert tester.arm_requests[0][0] - t0 >= 0.45        # held 0.5 s first
+    time.sleep(0.8)
+    tester.joy = joy_msg(enable=True, held=(4,))
+    assert wait_for(lambda: len(tester.arm_requests) > 1, 3.0), 'no disarm request'
+    time.sleep(0.8)
+    assert [d for _, d in tester.arm_requests] == [True, False]
+    # Releasing the deadman while driving still stops cmd_vel with one zero.
+    tester.joy = joy_msg(x=1.0, enable=True)
+    assert wait_for(lambda: any(c[1] > 0.0 for c in tester.cmds()), 3.0)
+    t_release = time.monotonic()
+    tester.joy = joy_msg(x=1.0)
+    assert wait_for(lambda: any(c[1] == 0.0 for c in tester.cmds(t_release)), 2.0)
 
 
 # --- the process: SIGINT / SIGTERM ---------------------------------------------------------
@@ -276,12 +324,11 @@ def test_config_file_is_accepted_by_the_node(name):
         node = TeleopNode(context=context, parameter_overrides=[
             Parameter(k, value=v) for k, v in values.items()])
         try:
-            declared = set(node._parameters)
+            declared = set(spec_by_name(TeleopNodeConfig))
             assert set(values) <= declared, set(values) - declared
+            assert all(node.has_parameter(name) for name in declared)
             # ... and its type and range are accepted (the constructor raises otherwise).
-            cfg = node._teleop.cfg
-            assert cfg == TeleopConfig(**{field_name(k): v for k, v in values.items()
-                                          if field_name(k) in TeleopConfig.__dataclass_fields__})
+            assert node.teleop.cfg == from_flat(TeleopNodeConfig, values).teleop
         finally:
             node.destroy_node()
     finally:

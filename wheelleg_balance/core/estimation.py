@@ -6,11 +6,11 @@ positive rotation about the body y axis; yaw rate > 0 turns left (counter-clockw
 above). Wheel angular velocities are forward positive (after the motor direction mapping of
 core/actuation.py) and measured by the motor encoders, i.e. *relative to the leg*.
 
-Ground speed and the pitch-rate correction (DESIGN.md section 1). The wheel's stator sits on the
-leg, and the leg pitches with the body (the leg joints hold their angles while balancing), so the
-encoder reads w_rel = w_abs - theta_dot, where w_abs is the wheel's rotation rate about y in the
-world. Rolling without slipping gives x_dot = r_w w_abs (rolling forward is a positive rotation
-about y, the same sense as a forward lean). Hence
+Ground speed and the pitch-rate correction (docs/interface.md, "The model"). The wheel's
+stator sits on the leg, and the leg pitches with the body (the leg joints hold their angles
+while balancing), so the encoder reads w_rel = w_abs - theta_dot, where w_abs is the wheel's
+rotation rate about y in the world. Rolling without slipping gives x_dot = r_w w_abs (rolling
+forward is a positive rotation about y, the same sense as a forward lean). Hence
 
     x_dot = r_w ((w_l + w_r) / 2 + theta_dot),
 
@@ -21,10 +21,8 @@ the yaw rate r_w (w_r - w_l) / d_w is unaffected.
 import math
 from typing import Tuple
 
+from .attitude import roll_pitch_from_quaternion
 from .params import RobotParams
-
-#: Quaternions whose norm is farther than this from 1 are rejected (pitch is NaN).
-QUATERNION_NORM_TOLERANCE = 0.1
 
 
 def pitch_from_quaternion(x: float, y: float, z: float, w: float) -> float:
@@ -33,17 +31,13 @@ def pitch_from_quaternion(x: float, y: float, z: float, w: float) -> float:
 
     The pitch of the z-y'-x'' (yaw-pitch-roll) Euler decomposition: the angle of the body x
     axis below the horizontal plane, in [-pi/2, pi/2], positive when the body leans forward
-    (positive rotation about y). It does not depend on yaw and is exact under roll too.
-    The quaternion is normalized first. Returns NaN when a component is not finite or the
-    norm differs from 1 by more than QUATERNION_NORM_TOLERANCE (e.g. the all-zero quaternion
-    of an IMU that publishes no orientation), so the safety layer can reject the sample.
+    (positive rotation about y). It does not depend on yaw and is exact under roll too; it does
+    not tell a robot on its side from an upright one (core/attitude.py gives the roll as well).
+    Returns NaN when a component is not finite or the norm differs from 1 by more than
+    core/attitude.py QUATERNION_NORM_TOLERANCE (e.g. the all-zero quaternion of an IMU that
+    publishes no orientation), so the safety layer can reject the sample.
     """
-    n2 = x * x + y * y + z * z + w * w
-    if not math.isfinite(n2) or abs(math.sqrt(n2) - 1.0) > QUATERNION_NORM_TOLERANCE:
-        return math.nan
-    # sin(pitch) = 2 (w y - z x) for a unit quaternion; divide by n2 to normalize.
-    s = 2.0 * (w * y - z * x) / n2
-    return math.asin(min(1.0, max(-1.0, s)))
+    return roll_pitch_from_quaternion(x, y, z, w)[1]
 
 
 def pitch_rate_from_gyro(angular_velocity_y: float) -> float:
@@ -85,13 +79,17 @@ class WheelOdometry:
         self.reset()
 
     def reset(self) -> None:
-        """Set x, the pose and the previous velocities to zero (on arm)."""
-        self._x = 0.0
-        self._x_dot_prev = 0.0
-        self._yaw_rate_prev = 0.0
+        """Set x, the pose and the previous velocities to zero."""
         self._x_world = 0.0
         self._y_world = 0.0
         self._yaw = 0.0
+        self.reset_travel()
+
+    def reset_travel(self) -> None:
+        """Set x and the previous velocities to zero (on arm); the odom pose goes on."""
+        self._x = 0.0
+        self._x_dot_prev = 0.0
+        self._yaw_rate_prev = 0.0
         self.x_dot = 0.0
         self.yaw_rate = 0.0
 

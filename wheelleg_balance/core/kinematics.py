@@ -38,10 +38,31 @@ l = 0.37 m at q = 0.25 rad and l = 0.70 m at q = 1.12 rad in the symmetric stanc
 the joint limits [-0.2, 1.6] rad with room for the axle to move +-0.1 m fore and aft.
 """
 import math
-from typing import Tuple
+from typing import Optional, Tuple
 
 NAN = math.nan
+#: ((dx/dq_front, dx/dq_rear), (dl/dq_front, dl/dq_rear)) [m/rad].
+Jacobian = Tuple[Tuple[float, float], Tuple[float, float]]
 _ANGLE_TOL = 1e-9  # [rad] rounding allowance at the joint limits
+#: How far a *measured* hip angle may lie beyond a joint limit and still be a leg [rad]: a hard
+#: stop gives a little under load (and an encoder reads a little off); the inverse kinematics
+#: keeps to the limits themselves.
+STOP_MARGIN = 0.05
+#: Solved linkage poses (and Jacobians) kept per leg: a tick needs two to four.
+_POSES_KEPT = 16
+_UNSOLVED = object()
+
+
+def _once(store: dict, solve, q_front: float, q_rear: float):
+    """Return solve(q_front, q_rear), kept in store (up to _POSES_KEPT pairs, then cleared)."""
+    key = (q_front, q_rear)
+    value = store.get(key, _UNSOLVED)
+    if value is _UNSOLVED:
+        value = solve(q_front, q_rear)
+        if len(store) >= _POSES_KEPT:
+            store.clear()
+        store[key] = value
+    return value
 
 
 class FiveBarLeg:
@@ -68,6 +89,8 @@ class FiveBarLeg:
         self.q_min = float(q_min)
         self.q_max = float(q_max)
         self._half = 0.5 * self.hip_spacing
+        self._poses: dict = {}
+        self._jacobians: dict = {}
 
     def _knees(self, q_front: float, q_rear: float):
         a, h = self.thigh, self._half
@@ -75,33 +98,156 @@ class FiveBarLeg:
                 -h - a * math.cos(q_rear), -a * math.sin(q_rear))
 
     def in_reach(self, q_front: float, q_rear: float) -> bool:
-        """Tell whether both angles [rad] are finite, within limits, and the shanks can meet."""
-        lo, hi = self.q_min, self.q_max
+        """Tell whether both angles [rad] are finite, at the limits, and the shanks can meet."""
+        lo, hi = self.q_min - STOP_MARGIN, self.q_max + STOP_MARGIN
         if not (lo <= q_front <= hi and lo <= q_rear <= hi):  # False for NaN too
             return False
         fx, fz, rx, rz = self._knees(q_front, q_rear)
         d = math.hypot(fx - rx, fz - rz)
         return 0.0 < d <= 2.0 * self.shank
 
+    def axle(self, q_front: float, q_rear: float) -> Tuple[float, float]:
+        """
+        Position (x, z) [m] of the wheel axle in the hip-midpoint frame (base_link).
+
+        x forward, z up: the lower intersection of the two shank circles around the knees.
+        Returns (nan, nan) when not in_reach.
+        """
+        pose = self._pose(q_front, q_rear)
+        return (NAN, NAN) if pose is None else (pose[4], pose[5])
+
     def forward(self, q_front: float, q_rear: float) -> Tuple[float, float]:
         """
         Forward kinematics: (x, l) [m] of the wheel axle for hip angles q_front, q_rear [rad].
 
-        x is the axle's horizontal offset ahead of the COM, l its depth below the COM. The axle
-        is the lower intersection of the two shank circles around the knees. Returns (nan, nan)
-        when not in_reach.
+        x is the axle's horizontal offset ahead of the COM, l its depth below the COM (body
+        axes). Returns (nan, nan) when not in_reach.
         """
+        xc, zc = self.axle(q_front, q_rear)
+        return xc - self.com_x, self.com_height - zc
+
+    def _pose(self, q_front: float, q_rear: float):
+        """Return knees and axle (fx, fz, rx, rz, xc, zc), hip-midpoint frame; None: no reach."""
+        # A tick asks for the height, its rate, the knees, the Jacobian of the same angles:
+        # the linkage is solved once per pair of angles.
+        return _once(self._poses, self._solve, q_front, q_rear)
+
+    def _solve(self, q_front: float, q_rear: float):
         if not self.in_reach(q_front, q_rear):
-            return NAN, NAN
+            return None
         fx, fz, rx, rz = self._knees(q_front, q_rear)
         dx, dz = fx - rx, fz - rz
         d = math.hypot(dx, dz)
         ex, ez = dx / d, dz / d
         half_chord = math.sqrt(max(0.0, self.shank * self.shank - 0.25 * d * d))
         # (ez, -ex) is the downward normal when the front knee is ahead of the rear one.
-        xc = 0.5 * (fx + rx) + half_chord * ez
-        zc = 0.5 * (fz + rz) - half_chord * ex
-        return xc - self.com_x, self.com_height - zc
+        return (fx, fz, rx, rz, 0.5 * (fx + rx) + half_chord * ez,
+                0.5 * (fz + rz) - half_chord * ex)
+
+    def jacobian(self, q_front: float, q_rear: float) -> Optional[Jacobian]:
+        """
+        Leg Jacobian d(x, l) / d(q_front, q_rear): ((dx/dq_f, dx/dq_r), (dl/dq_f, dl/dq_r)).
+
+        Units m/rad. From the closure of the two shanks: each shank keeps its length, so
+        (P - K_i) . (dP - dK_i/dq_i dq_i) = 0 for the axle P and knee K_i, two linear equations
+        in dP. None when out of reach or singular (the shanks in line).
+        """
+        # Asked for up to four times per leg and tick at the same angles (hip rates and torques
+        # of the command, l_dot and the leg force of the state): solved once per pair.
+        return _once(self._jacobians, self._solve_jacobian, q_front, q_rear)
+
+    def _solve_jacobian(self, q_front: float, q_rear: float) -> Optional[Jacobian]:
+        pose = self._pose(q_front, q_rear)
+        if pose is None:
+            return None
+        fx, fz, rx, rz, xc, zc = pose
+        a = self.thigh
+        # Shank vectors knee -> axle, and the knees' velocities per unit hip rate.
+        ufx, ufz = xc - fx, zc - fz
+        urx, urz = xc - rx, zc - rz
+        bf = ufx * (-a * math.sin(q_front)) + ufz * (-a * math.cos(q_front))
+        br = urx * (a * math.sin(q_rear)) + urz * (-a * math.cos(q_rear))
+        det = ufx * urz - ufz * urx
+        if abs(det) < 1e-9 * self.shank * self.shank:
+            return None
+        # [ufx ufz; urx urz] dP = diag(bf, br) dq  ->  dP = A^-1 B dq.
+        dxc_f, dxc_r = urz * bf / det, -ufz * br / det
+        dzc_f, dzc_r = -urx * bf / det, ufx * br / det
+        return (dxc_f, dxc_r), (-dzc_f, -dzc_r)   # l = com_height - zc
+
+    def height_rate(self, q_front: float, q_rear: float, q_front_dot: float,
+                    q_rear_dot: float) -> float:
+        """Return l_dot [m/s] for hip rates [rad/s]; nan when out of reach or singular."""
+        j = self.jacobian(q_front, q_rear)
+        if j is None:
+            return NAN
+        return j[1][0] * q_front_dot + j[1][1] * q_rear_dot
+
+    def hip_rates(self, q_front: float, q_rear: float, l_dot: float,
+                  x_dot: float = 0.0) -> Tuple[float, float]:
+        """
+        Hip rates (q_front_dot, q_rear_dot) [rad/s] that move the axle by (x_dot, l_dot) [m/s].
+
+        The inverse of the Jacobian; (nan, nan) when out of reach or singular.
+        """
+        j = self.jacobian(q_front, q_rear)
+        if j is None:
+            return NAN, NAN
+        (a, b), (c, d) = j
+        det = a * d - b * c
+        if det == 0.0:
+            return NAN, NAN
+        return (d * x_dot - b * l_dot) / det, (-c * x_dot + a * l_dot) / det
+
+    def static_torques(self, q_front: float, q_rear: float, f_l: float,
+                       f_x: float = 0.0) -> Tuple[float, float]:
+        """
+        Hip torques (tau_front, tau_rear) [N m] that hold the leg against a load, J^T (f_x, f_l).
+
+        f_l [N]: the force the leg must push with along +l (body away from the axle: the body's
+        weight share per leg, m g / 2, when level); f_x [N]: along +x. The torques act in the
+        hips' angle convention (positive increases q); virtual work: tau . dq = f_x dx + f_l dl.
+        (nan, nan) when out of reach or singular.
+        """
+        j = self.jacobian(q_front, q_rear)
+        if j is None:
+            return NAN, NAN
+        (a, b), (c, d) = j
+        return a * f_x + c * f_l, b * f_x + d * f_l
+
+    def leg_force(self, q_front: float, q_rear: float, tau_front: float,
+                  tau_rear: float) -> Tuple[float, float]:
+        """
+        Return the load (f_x, f_l) [N] that hip torques [N m] hold (static_torques inverted).
+
+        f_l > 0: the leg pushes the body up (it carries weight); a leg hanging from a lifted
+        body holds its wheel: f_l < 0. (nan, nan) when out of reach or singular.
+        """
+        j = self.jacobian(q_front, q_rear)
+        if j is None:
+            return NAN, NAN
+        (a, b), (c, d) = j
+        det = a * d - b * c
+        if det == 0.0 or not math.isfinite(det):
+            return NAN, NAN
+        return (d * tau_front - c * tau_rear) / det, (a * tau_rear - b * tau_front) / det
+
+    def knee_angles(self, q_front: float, q_rear: float) -> Tuple[float, float]:
+        """
+        Passive knee angles (knee_front, knee_rear) [rad] for hip angles q_front, q_rear.
+
+        Each is the shank's angle below the thigh's outward horizontal minus the hip angle,
+        phi - q (front, about +y) and psi - q (rear, about -y), the convention of the knee joints
+        in sim/robot.xml and urdf/wheelleg_balance.urdf (balance_node publishes them in
+        joint_states); zero = shank in line with its thigh. (nan, nan) when out of reach.
+        """
+        pose = self._pose(q_front, q_rear)
+        if pose is None:
+            return NAN, NAN
+        fx, fz, rx, rz, xc, zc = pose
+        phi = math.atan2(-(zc - fz), xc - fx)      # front shank below the forward horizontal
+        psi = math.atan2(-(zc - rz), -(xc - rx))   # rear shank below the backward horizontal
+        return phi - q_front, psi - q_rear
 
     def height(self, q_front: float, q_rear: float) -> float:
         """Return the body height l [m] (axle to COM, body-vertical); nan when out of reach."""

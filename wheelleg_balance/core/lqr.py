@@ -22,12 +22,12 @@ the force u (a complex pair in the right half plane). Read as a gain to wheel to
 both as the total torque (u = tau_total / r_w, gain x 10) and as the torque of each wheel
 (u = 2 tau / r_w, gain x 20); see docs/linear_control.md. ``table_i_force_gain`` converts it.
 """
-from bisect import bisect_right
 from typing import Optional
 
 import numpy as np
 from scipy.linalg import solve_continuous_are
 
+from .height_grid import bracket
 from .model import linearize
 from .params import RobotParams, TABLE_I_K_X
 
@@ -106,13 +106,9 @@ class GainSchedule:
 
     def gain_floats(self, l: float) -> tuple:
         """Return k_x(l) as a tuple of four floats (per-tick form of ``gain``)."""
-        h = self._h
-        if l <= h[0]:
-            return self._k[0]
-        if l >= h[-1]:
-            return self._k[-1]
-        i = bisect_right(h, l) - 1
-        t = (l - h[i]) / (h[i + 1] - h[i])
+        i, t = bracket(self._h, l)
+        if t == 0.0:
+            return self._k[i]
         a, b = self._k[i], self._k[i + 1]
         return (a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1]),
                 a[2] + t * (b[2] - a[2]), a[3] + t * (b[3] - a[3]))

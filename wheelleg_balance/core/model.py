@@ -4,7 +4,7 @@ The inverted pendulum on a cart (IPC) of the paper, Sec. II, with a variable hei
 State xi = [theta, theta_dot, x, x_dot]: pitch theta [rad] (> 0 leans forward), pitch rate
 [rad/s], position x [m] and ground speed x_dot [m/s]; u [N] is the force on the cart (> 0 pushes
 forward). m = ``p.body_mass`` is the pendulum (body) and M = ``p.wheel_mass`` the cart (wheels),
-see DESIGN.md section 1.
+see docs/interface.md ("The model").
 
 - ``ipc_dynamics`` / ``ipc_accel``: model (1),
       (M + m) x_ddot + m l cos(theta) theta_ddot - m l sin(theta) theta_dot^2 = u,
@@ -12,6 +12,12 @@ see DESIGN.md section 1.
   solved for the accelerations:
       x_ddot = (u + m l sin(theta) theta_dot^2 - m g sin(theta) cos(theta)) / (M + m sin^2(theta)),
       theta_ddot = (g sin(theta) - cos(theta) x_ddot) / l.
+- ``ipc_accel_moving``: model (1) for a height l(t) that moves (the simulation's plant): a
+  point mass on a leg of prescribed length l(t) adds, from its Lagrangian,
+      (M + m) x_ddot + m l c theta_ddot - m l s theta_dot^2 + m (l_ddot s + 2 l_dot c theta_dot)
+          = u,
+      c x_ddot + l theta_ddot + 2 l_dot theta_dot - g s = 0,   (s = sin(theta), c = cos(theta)),
+  which vanish for l_dot = l_ddot = 0: ``ipc_accel`` is that case.
 - ``linearize``: (2), xi_dot = A xi + B u about the upright equilibrium.
 - ``disturbance_input``: E_d of (5), the way an IMU offset d (theta~ = theta + d) enters (2)
   written in the measured state xi~ = [theta~, theta_dot, x, x_dot]: E_d = -A e_1.
@@ -25,6 +31,22 @@ import numpy as np
 from .params import RobotParams
 
 
+def ipc_accel_moving(theta: float, theta_dot: float, u: float, l: float, l_dot: float,
+                     l_ddot: float, m: float, M: float, g: float) -> tuple:
+    """
+    Return (theta_ddot [rad/s^2], x_ddot [m/s^2]) of model (1) with a moving height.
+
+    theta [rad], theta_dot [rad/s], u [N], l [m], l_dot [m/s], l_ddot [m/s^2], m (body) and M
+    (wheels) [kg], g [m/s^2] (the module docstring gives the equations).
+    """
+    s = math.sin(theta)
+    c = math.cos(theta)
+    f1 = u + m * l * s * theta_dot * theta_dot - m * (l_ddot * s + 2.0 * l_dot * c * theta_dot)
+    f2 = g * s - 2.0 * l_dot * theta_dot
+    x_ddot = (f1 - m * c * f2) / (M + m * s * s)
+    return (f2 - c * x_ddot) / l, x_ddot
+
+
 def ipc_accel(theta: float, theta_dot: float, u: float, l: float,
               p: RobotParams) -> tuple:
     """
@@ -32,12 +54,8 @@ def ipc_accel(theta: float, theta_dot: float, u: float, l: float,
 
     Plain floats, for simulation loops; ``ipc_dynamics`` wraps it.
     """
-    m, g = p.body_mass, p.gravity
-    s = math.sin(theta)
-    c = math.cos(theta)
-    x_ddot = (u + m * l * s * theta_dot * theta_dot - m * g * s * c) / (p.wheel_mass + m * s * s)
-    theta_ddot = (g * s - c * x_ddot) / l
-    return theta_ddot, x_ddot
+    return ipc_accel_moving(theta, theta_dot, u, l, 0.0, 0.0, p.body_mass, p.wheel_mass,
+                            p.gravity)
 
 
 def ipc_dynamics(state, u: float, l: float, p: RobotParams) -> np.ndarray:

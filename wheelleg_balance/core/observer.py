@@ -24,13 +24,13 @@ L, and the matrices F = (I - L C_hat) Ad, G = (I - L C_hat) Bd of the one-line u
 zeta_k = F zeta_{k-1} + G u_{k-1} + L y_k, are precomputed on a grid of heights and linearly
 interpolated at l (only when l changes); ``update`` is plain float arithmetic.
 """
-from bisect import bisect_right
 import math
 from typing import Optional
 
 import numpy as np
 from scipy.signal import cont2discrete, place_poles
 
+from .height_grid import bracket
 from .model import disturbance_input, linearize
 from .params import CONTROL_PERIOD, RobotParams
 
@@ -116,13 +116,9 @@ class DisturbanceObserver:
         return r[:, :5], r[:, 5], r[:, 6:8]
 
     def _interp(self, l: float) -> np.ndarray:
-        h = self._h
-        if l <= h[0]:
-            return self._rows[0]
-        if l >= h[-1]:
-            return self._rows[-1]
-        i = bisect_right(h, l) - 1
-        t = (l - h[i]) / (h[i + 1] - h[i])
+        i, t = bracket(self._h, l)
+        if t == 0.0:
+            return self._rows[i]
         return self._rows[i] + t * (self._rows[i + 1] - self._rows[i])
 
     def reset(self, xi_hat0) -> None:

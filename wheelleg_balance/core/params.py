@@ -1,46 +1,63 @@
 """
 Robot parameters and the paper's Table I.
 
-Units are SI throughout. Naming follows DESIGN.md section 1: ``body_mass`` is the pendulum mass m
+Units are SI throughout. Naming follows docs/interface.md: ``body_mass`` is the pendulum mass m
 (11 kg) and ``wheel_mass`` the cart mass M (3 kg, both wheels) -- the paper's prose swaps them, but
 equation (1), the linearization (2) and Table I only agree with this reading.
+Both dataclasses are sections of the robot's configuration (core/config.py): the defaults,
+descriptions and ranges below are the parameters' own.
 """
 from dataclasses import dataclass
 
 import numpy as np
+
+from .schema import param
+
+RO = True
 
 
 @dataclass(frozen=True)
 class RobotParams:
     """Physical parameters of the inverted pendulum on a cart (model (1)), Table I."""
 
-    body_mass: float = 11.0        # m [kg], pendulum (body) mass
-    wheel_mass: float = 3.0        # M [kg], cart (both wheels) mass
-    gravity: float = 9.81          # g [m/s^2]
-    wheel_radius: float = 0.1      # r_w [m]
-    wheel_separation: float = 0.47  # d_w [m], track
-    height_min: float = 0.37       # l_min [m]
-    height_max: float = 0.70       # l_max [m]
+    body_mass: float = param(11.0, 'm: body (pendulum) mass [kg]', 0.1, 200.0, read_only=RO)
+    wheel_mass: float = param(3.0, 'M: mass of both wheels (cart) [kg]', 0.01, 100.0,
+                              read_only=RO)
+    gravity: float = param(9.81, 'g: gravitational acceleration [m/s^2]', 1.0, 20.0, read_only=RO)
+    wheel_radius: float = param(0.1, 'r_w: wheel radius [m]', 0.01, 1.0, read_only=RO)
+    wheel_separation: float = param(0.47, 'd_w: distance between the wheels [m]', 0.05, 3.0,
+                                    read_only=RO)
+    height_min: float = param(0.37, 'lowest body height l above the wheel axle [m]', 0.05,
+                              3.0, read_only=RO)
+    height_max: float = param(0.70, 'highest body height l above the wheel axle [m]', 0.05,
+                              3.0, read_only=RO)
 
     def clamp_height(self, l: float) -> float:
         """Clamp a height l [m] into [height_min, height_max]."""
         return min(max(l, self.height_min), self.height_max)
+
+    def problems(self):
+        """Cross-field rules of the model section."""
+        if not self.height_min < self.height_max:
+            return ['height_min must be below height_max']
+        return []
 
 
 @dataclass(frozen=True)
 class IdaPbcGains:
     """IDA-PBC free parameters (Table I): k > 0, m22_0 >= 0, k_v > 0, P >= 0."""
 
-    k: float = 0.015
-    m22_0: float = 0.04
-    k_v: float = 0.05
-    P: float = 0.2
+    k: float = param(0.015, 'IDA-PBC k > 0 of M_d (Table I)', 1e-6, 10.0)
+    m22_0: float = param(0.04, 'IDA-PBC m22^0 >= 0 of M_d (Table I)', 0.0, 10.0)
+    k_v: float = param(0.05, 'IDA-PBC damping injection k_v > 0 (Table I)', 1e-6, 10.0)
+    P: float = param(0.2, 'IDA-PBC gain P >= 0 (Table I: 0.2; 0 makes (13) an exact IDA-PBC, '
+                     'docs/ida_pbc.md)', 0.0, 100.0)
 
 
-#: Table I output-regulation gains exactly as printed (units: see core/lqr.py TABLE_I_* notes).
+#: Table I output-regulation gain k_x exactly as printed (units: see core/lqr.py notes).
 TABLE_I_K_X = np.array([150.0, 12.0, 0.001, 10.0])
+#: Table I's k_d as printed (it does not cancel k_x: docs/linear_control.md).
 TABLE_I_K_D = -167.0
-TABLE_I_L = np.array([27.63, 397.75, -6.48, -111.4, -0.45])
 
 #: Control period of the paper [s].
 CONTROL_PERIOD = 0.002

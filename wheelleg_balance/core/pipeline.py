@@ -119,7 +119,13 @@ class BalanceCore:
     """The control tick shared by balance_node, the simulation and the benchmark."""
 
     def __init__(self, p: RobotParams = RobotParams(), config: Optional[CoreConfig] = None,
-                 dt: float = CONTROL_PERIOD):
+                 dt: float = CONTROL_PERIOD, odometry: Optional[WheelOdometry] = None):
+        """
+        Build the core for robot ``p`` at control period ``dt`` [s].
+
+        odometry: the wheel odometry to update while balancing (the tick's own, so its odom
+        pose is one; None: a private one).
+        """
         self.p = p
         self.config = config if config is not None else CoreConfig()
         if self.config.controller not in CONTROLLER_NAMES:
@@ -133,7 +139,7 @@ class BalanceCore:
             'lqr': LqrController(p, self.schedule),
         }
         self.observer = DisturbanceObserver(p, dt)
-        self.odometry = WheelOdometry(p)
+        self.odometry = odometry if odometry is not None else WheelOdometry(p)
         self._active = self.config.controller
         self._requested: Optional[str] = None
         self._input = ControlInput(l=p.height_min)
@@ -164,7 +170,7 @@ class BalanceCore:
 
     def reset(self, meas: Measurement) -> None:
         """Start balancing from ``meas`` (on arm): x = 0, observer at the measured pitch."""
-        self.odometry.reset()
+        self.odometry.reset_travel()
         theta_dot = meas.theta_dot if math.isfinite(meas.theta_dot) else 0.0
         self.observer.reset(np.array([meas.theta_meas, theta_dot, 0.0, 0.0, self.config.d_hat0]))
         self._u_applied = 0.0

@@ -1,25 +1,29 @@
 """
-Safety supervisor of balance_node and the shaping of the operator's reference.
+Safety supervisor of balance_node: the mode machine and the fault checks of every tick.
 
-``SafetySupervisor`` is a three-mode state machine (no rclpy, no python-can: the node feeds it
-monotonic times and the newest samples every control tick):
+``SafetySupervisor`` is a state machine (no rclpy, no python-can: the tick feeds it monotonic
+times and the newest samples every control tick):
 
 - ``DISARMED``: motors in rest mode, no torque. Fault conditions are evaluated and reported, but
   they do not change the mode; ``arm`` is refused with a reason while one is present.
 - ``BALANCING``: the controller's torques go to the wheels. Any fault condition moves to FAULT.
 - ``FAULT``: zero torque, latched reasons. FAULT is never left by itself: only an explicit
   ``arm`` (re-arm, refused while a condition is still present) or ``disarm``.
+- ``HOMING``: the hip motors are driven to their stops before the first arm (core/legs.py);
+  the wheels get zero torque; any condition is a FAULT, like BALANCING.
+- ``SITTING``: the sit-down sequence (core/balance_loop.py): still balancing while the legs go
+  down and the body leans onto its tail, then DISARMED; any condition is a FAULT.
 
-Fault conditions (checked every tick): stale IMU (``imu_timeout``), stale joint states
-(``joint_state_timeout``), a non-finite measurement, |theta~| > ``fall_angle``, a motor that has
-not answered within ``motor_timeout`` while it is being commanded, and a failed CAN send. An
+Fault conditions (checked every tick): stale IMU (``imu_timeout``), stale wheel states
+(``joint_state_timeout``), a non-finite measurement, |theta~| > ``fall_angle``, |roll| >
+``fall_roll_angle`` (lying on a side; a robot on its side reads pitch 0), a motor that has not
+answered within ``motor_timeout`` while it is being commanded, and a failed CAN send. An
 exception inside the control tick (a bug) is reported as ``internal_error`` and treated alike.
-The robot rests on its tail at about +36 deg, inside ``fall_angle`` (45 deg): arming there is the
-paper's start-up experiment (Sec. V-B 1), so it is allowed.
+Arming needs a plausible pose on top (``pose``): resting on the tail (about +36 deg, inside
+``fall_angle``: the paper's start-up, Sec. V-B 1) or upright and still.
 
-A stale cmd_vel is *not* a fault: ``ReferenceShaper`` brings x_dot* and yaw rate* to zero through
-acceleration then velocity limits (as ros2_controllers' diff_drive_controller speed limiter)
-while the robot keeps balancing.
+A stale cmd_vel is *not* a fault: the reference shaping (core/reference.py) brings x_dot* and
+yaw rate* to zero while the robot keeps balancing.
 """
 from dataclasses import dataclass
 import enum
@@ -34,10 +38,19 @@ FALL = 'fall'
 MOTOR_SILENT = 'motor_silent'
 CAN_SEND = 'can_send'
 INTERNAL = 'internal_error'
+ROLL = 'roll'
+POSE = 'pose'
+LOOP_STALL = 'loop_stall'
+LEGS = 'legs'
+LIFTED = 'lifted'
+MOTOR_ERROR = 'motor_error'
+MOTOR_REBOOTED = 'motor_rebooted'
+OVER_TEMPERATURE = 'over_temperature'
 
 #: Every fault code, in the order the checks run.
-FAULT_CODES = (IMU_STALE, JOINT_STATES_STALE, NON_FINITE, IMPLAUSIBLE, FALL, MOTOR_SILENT,
-               CAN_SEND, INTERNAL)
+FAULT_CODES = (IMU_STALE, JOINT_STATES_STALE, NON_FINITE, IMPLAUSIBLE, FALL, ROLL,
+               MOTOR_SILENT, CAN_SEND, INTERNAL, LOOP_STALL, LEGS, LIFTED, MOTOR_ERROR,
+               MOTOR_REBOOTED, OVER_TEMPERATURE, POSE)
 
 
 class Mode(enum.IntEnum):
@@ -46,6 +59,12 @@ class Mode(enum.IntEnum):
     DISARMED = 0
     BALANCING = 1
     FAULT = 2
+    HOMING = 3
+    SITTING = 4
+
+
+#: Modes in which the motors are commanded (and must answer).
+COMMANDING = (Mode.BALANCING, Mode.HOMING, Mode.SITTING)
 
 
 @dataclass
@@ -60,6 +79,10 @@ class SafetyLimits:
     [rad/s] (35 rad/s = 2000 deg/s, the full scale of common MEMS gyros).
     max_wheel_velocity: |wheel velocity| no drive of this robot reaches [rad/s] (200 rad/s:
     20 m/s on 0.1 m wheels; unloaded wheels in a simulated tumble reached 103 rad/s).
+    fall_roll_angle: |roll| beyond which the robot lies on a side [rad].
+    tail_pitch, tail_tolerance: the tail rest pitch and the window around it that counts as
+    resting on the tail for arming [rad]; upright_pitch: |theta~| of the upright window for
+    arming [rad]; still_rate: |theta_dot| [rad/s] below which upright counts as still.
     """
 
     fall_angle: float = math.radians(45.0)
@@ -68,6 +91,11 @@ class SafetyLimits:
     motor_timeout: float = 0.05
     max_pitch_rate: float = 35.0
     max_wheel_velocity: float = 200.0
+    fall_roll_angle: float = math.radians(30.0)
+    tail_pitch: float = math.radians(36.0)
+    tail_tolerance: float = math.radians(10.0)
+    upright_pitch: float = math.radians(20.0)
+    still_rate: float = 0.3
 
     def plausible(self, s: 'SensorSnapshot') -> bool:
         """Return True when the rates in ``s`` are within what the robot can do (False for NaN)."""
@@ -92,7 +120,8 @@ class SensorSnapshot:
 
     imu_time / joint_time: monotonic receipt time of the newest IMU / joint-state sample [s],
     None when none arrived yet. theta: IMU pitch theta~ [rad]; theta_dot [rad/s];
-    wheel_vel_left / wheel_vel_right [rad/s]; l: height [m].
+    wheel_vel_left / wheel_vel_right [rad/s]; l: height [m]; roll: body roll [rad] (0 when the
+    caller does not know it).
     """
 
     imu_time: Optional[float] = None
@@ -102,6 +131,7 @@ class SensorSnapshot:
     wheel_vel_left: float = math.nan
     wheel_vel_right: float = math.nan
     l: float = math.nan
+    roll: float = 0.0
 
     def finite(self) -> bool:
         """Return True when every measured value is finite."""
@@ -138,8 +168,8 @@ class SafetySupervisor:
 
     @property
     def torque_allowed(self) -> bool:
-        """Return True only while BALANCING: other modes send zero torque or nothing."""
-        return self._mode is Mode.BALANCING
+        """Return True while the controller's wheel torques go out (BALANCING, SITTING)."""
+        return self._mode is Mode.BALANCING or self._mode is Mode.SITTING
 
     @property
     def faults(self) -> Tuple[Fault, ...]:
@@ -183,6 +213,11 @@ class SafetySupervisor:
             found = found or []
             found.append(Fault(FALL, '|theta| %.1f deg > fall_angle %.1f deg'
                                % (math.degrees(abs(s.theta)), math.degrees(lim.fall_angle)), now))
+        if s.imu_time is not None and abs(s.roll) > lim.fall_roll_angle:  # False for NaN
+            found = found or []
+            found.append(Fault(ROLL, '|roll| %.1f deg > fall_roll_angle %.1f deg (lying on a '
+                               'side?)' % (math.degrees(abs(s.roll)),
+                                           math.degrees(lim.fall_roll_angle)), now))
         if self._commanding_since is not None:
             for motor_id in self.motor_ids:
                 last = motor_reply_times.get(motor_id)
@@ -200,10 +235,30 @@ class SafetySupervisor:
 
     def update(self, now: float, s: SensorSnapshot,
                motor_reply_times: Mapping[int, Optional[float]]) -> Mode:
-        """Run the checks of one control tick; BALANCING goes to FAULT on any condition."""
+        """Run the checks of one control tick; a commanding mode goes to FAULT on any."""
         self._conditions = self.check(now, s, motor_reply_times)
-        if self._conditions and self._mode is Mode.BALANCING:
+        if self._conditions and self._mode in COMMANDING:
             self._enter_fault(self._conditions)
+        return self._mode
+
+    def pose_problem(self, s: SensorSnapshot) -> Optional[str]:
+        """Return why the pose is no place to arm from (None: on the tail, or upright, still)."""
+        lim = self.limits
+        on_tail = abs(s.theta - lim.tail_pitch) <= lim.tail_tolerance
+        upright = abs(s.theta) <= lim.upright_pitch and abs(s.theta_dot) <= lim.still_rate
+        if (on_tail or upright) and abs(s.roll) <= lim.tail_tolerance:
+            return None
+        return ('pose: pitch %.1f deg, roll %.1f deg, pitch rate %.2f rad/s is neither resting '
+                'on the tail (%.0f +- %.0f deg) nor upright and still' % (
+                    math.degrees(s.theta), math.degrees(s.roll), s.theta_dot,
+                    math.degrees(lim.tail_pitch), math.degrees(lim.tail_tolerance)))
+
+    def report_fault(self, now: float, code: str, message: str) -> Mode:
+        """Report a fault found outside the checks (a loop stall, the legs): FAULT if commanded."""
+        if self._mode in COMMANDING:
+            self._enter_fault((Fault(code, message, now),))
+        elif self._mode is Mode.FAULT and all(f.code != code for f in self._faults):
+            self._faults = self._faults + (Fault(code, message, now),)
         return self._mode
 
     def report_send(self, now: float, ok: bool, message: str = '') -> Mode:
@@ -213,7 +268,7 @@ class SafetySupervisor:
             return self._mode
         self._send_error = message or 'unknown error'
         fault = Fault(CAN_SEND, 'CAN send failed: %s' % self._send_error, now)
-        if self._mode is Mode.BALANCING:
+        if self._mode in COMMANDING:
             self._enter_fault((fault,))
         elif self._mode is Mode.FAULT and all(f.code != CAN_SEND for f in self._faults):
             self._faults = self._faults + (fault,)
@@ -223,7 +278,7 @@ class SafetySupervisor:
         """Report an exception in the control tick: BALANCING goes to FAULT (the node lives on)."""
         if self._mode is not Mode.DISARMED:
             fault = Fault(INTERNAL, 'internal error: %s' % message, now)
-            if self._mode is Mode.BALANCING:
+            if self._mode in COMMANDING:
                 self._enter_fault((fault,))
             elif all(f.code != INTERNAL for f in self._faults):
                 self._faults = self._faults + (fault,)
@@ -234,21 +289,42 @@ class SafetySupervisor:
         """
         Request BALANCING (from DISARMED or, as the explicit re-arm, from FAULT).
 
-        Returns (accepted, reason). Refused while any fault condition is present. From DISARMED
-        the motors have not been commanded, so their replies and the CAN sends are judged from
-        ``now`` on (the node sends the enter-motor-mode frames right after).
+        Returns (accepted, reason). Refused while any fault condition is present, and from a
+        pose that is neither resting on the tail nor upright and still. From DISARMED the
+        motors have not been commanded, so their replies and the CAN sends are judged from
+        ``now`` on (the node sends the enter-motor-mode frames right after). From HOMING (the
+        legs are done) it goes on balancing with the motors already commanded.
         """
-        if self._mode is Mode.BALANCING:
+        if self._mode is Mode.BALANCING or self._mode is Mode.SITTING:
             return True, 'already balancing'
+        return self._start(now, s, motor_reply_times, Mode.BALANCING, 'balancing')
+
+    def start_homing(self, now: float, s: SensorSnapshot,
+                     motor_reply_times: Mapping[int, Optional[float]]) -> Tuple[bool, str]:
+        """Request HOMING (the legs before the first arm), with arm's checks and pose rule."""
+        return self._start(now, s, motor_reply_times, Mode.HOMING, 'homing the legs')
+
+    def _start(self, now, s, motor_reply_times, mode: Mode, what: str) -> Tuple[bool, str]:
         self._conditions = self.check(now, s, motor_reply_times)
         if self._conditions:
             return False, 'arming refused: ' + '; '.join(f.message for f in self._conditions)
-        if self._mode is Mode.DISARMED:
+        pose = self.pose_problem(s)
+        if pose is not None:
+            self._conditions = (Fault(POSE, pose, now),)
+            return False, 'arming refused: ' + pose
+        if self._mode not in COMMANDING:
             self._commanding_since = now
             self._send_error = None  # judged again by the enter-motor-mode frames that follow
-        self._mode = Mode.BALANCING
+        self._mode = mode
         self._faults = _NO_FAULTS
-        return True, 'balancing'
+        return True, what
+
+    def sit_down(self) -> bool:
+        """Go from BALANCING to SITTING (the sit-down sequence); False from any other mode."""
+        if self._mode is not Mode.BALANCING:
+            return False
+        self._mode = Mode.SITTING
+        return True
 
     def disarm(self) -> None:
         """Go to DISARMED (from any mode): the node sends zero torque, then exit motor mode."""
@@ -259,53 +335,3 @@ class SafetySupervisor:
     def _enter_fault(self, faults: Tuple[Fault, ...]) -> None:
         self._mode = Mode.FAULT
         self._faults = faults
-
-
-def limit_rate(target: float, previous: float, max_rate: float, dt: float) -> float:
-    """Move from ``previous`` towards ``target`` by at most ``max_rate * dt``."""
-    step = max_rate * dt
-    return min(max(target, previous - step), previous + step)
-
-
-class ReferenceShaper:
-    """
-    Shapes cmd_vel into the references x_dot* [m/s] and yaw rate* [rad/s].
-
-    Per axis, as diff_drive_controller's SpeedLimiter: first the acceleration limit (relative to
-    the previous reference), then the velocity limit. A command older than ``cmd_vel_timeout``
-    [s] counts as zero, so the references ramp down to zero at the acceleration limits.
-    """
-
-    def __init__(self, max_velocity: float = 1.0, max_acceleration: float = 1.0,
-                 max_yaw_rate: float = 3.0, max_yaw_acceleration: float = 6.0,
-                 cmd_vel_timeout: float = 0.5):
-        self.max_velocity = max_velocity
-        self.max_acceleration = max_acceleration
-        self.max_yaw_rate = max_yaw_rate
-        self.max_yaw_acceleration = max_yaw_acceleration
-        self.cmd_vel_timeout = cmd_vel_timeout
-        self.x_dot_ref = 0.0
-        self.yaw_rate_ref = 0.0
-        self.timed_out = True
-
-    def reset(self) -> None:
-        """Start from rest (on arm)."""
-        self.x_dot_ref = 0.0
-        self.yaw_rate_ref = 0.0
-
-    def update(self, now: float, cmd_time: Optional[float], x_dot_cmd: float,
-               yaw_rate_cmd: float, dt: float) -> Tuple[float, float]:
-        """
-        Advance one tick of ``dt`` [s] towards the newest command.
-
-        cmd_time is the monotonic receipt time of the command [s] (None: none yet).
-        Returns (x_dot*, yaw rate*).
-        """
-        self.timed_out = cmd_time is None or now - cmd_time > self.cmd_vel_timeout
-        if self.timed_out:
-            x_dot_cmd = yaw_rate_cmd = 0.0
-        x = limit_rate(x_dot_cmd, self.x_dot_ref, self.max_acceleration, dt)
-        self.x_dot_ref = min(max(x, -self.max_velocity), self.max_velocity)
-        w = limit_rate(yaw_rate_cmd, self.yaw_rate_ref, self.max_yaw_acceleration, dt)
-        self.yaw_rate_ref = min(max(w, -self.max_yaw_rate), self.max_yaw_rate)
-        return self.x_dot_ref, self.yaw_rate_ref

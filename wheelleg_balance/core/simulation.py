@@ -7,10 +7,8 @@ The plant is the inverted pendulum on a cart of Sec. II-B, model (1), with the r
   torques held constant over each 2 ms tick (zero-order hold), optional extra ticks of delay;
 - height l(t): a smooth schedule (cubic smoothstep between waypoints). Model (1) treats l as a
   constant; for a moving l the plant adds the terms a point mass on a leg of prescribed length
-  l(t) gets from its Lagrangian (they vanish for l_dot = l_ddot = 0, leaving (1) exactly):
-      (M + m) x_ddot + m l c theta_ddot - m l s theta_dot^2 + m (l_ddot s + 2 l_dot c theta_dot)
-          = u,
-      c x_ddot + l theta_ddot + 2 l_dot theta_dot - g s = 0,   (s = sin(theta), c = cos(theta));
+  l(t) gets from its Lagrangian (core/model.py ipc_accel_moving; they vanish for l_dot =
+  l_ddot = 0, leaving (1) exactly);
 - the tail: the body cannot lean forward past ``tail_angle`` (+36 deg). Resting on it, the tail's
   passive wheel pushes only vertically, i.e. a generalized force on theta alone, so the robot
   rolls as one rigid body ((M + m) x_ddot = u - m l_ddot s) until the wheels accelerate forward
@@ -37,6 +35,7 @@ from typing import Optional, Sequence, Tuple
 
 import numpy as np
 
+from .model import ipc_accel_moving
 from .params import CONTROL_PERIOD, IdaPbcGains, RobotParams
 from .pipeline import BalanceCore, CoreConfig, Measurement, Reference
 
@@ -44,14 +43,6 @@ from .pipeline import BalanceCore, CoreConfig, Measurement, Reference
 TAIL_ANGLE = math.radians(36.0)
 #: Pitch beyond which the robot counts as fallen [rad].
 FALL_ANGLE = math.radians(45.0)
-#: Default settling band of ``SimResult.settling_time_s`` [deg].
-SETTLING_BAND_DEG = 2.0
-
-
-def settling_band_note(band_deg: float = SETTLING_BAND_DEG) -> str:
-    """Return the definition of ``SimResult.settling_time_s`` in words (for reports)."""
-    return ('Settling time: time from arming after which the true pitch stays within '
-            '+-%g deg for the rest of the run.' % band_deg)
 
 
 class SmoothSchedule:
@@ -155,6 +146,8 @@ class SimResult:
     tau_left, tau_right: wheel torques applied over the tick [N m]; d_hat: observer estimate
     [rad]; l: height [m]; x_dot_ref: velocity reference [m/s]; yaw_rate: true yaw rate [rad/s].
     fell / fall_time: whether and when [s] the robot fell. cpu_time: process time of the run [s].
+    The figures of a run (overshoot, settling time, peak torque, tracking errors) are computed
+    from these arrays by validation/paper/metrics.py (validation/paper/experiments.run_metrics).
     """
 
     scenario: Scenario
@@ -176,75 +169,9 @@ class SimResult:
     fall_time: Optional[float]
     cpu_time: float
 
-    def overshoot_deg(self) -> float:
-        """
-        Largest excursion of the true theta past 0 to the side opposite theta0 [deg].
 
-        For the start-up from +36 deg on the tail this is -min(theta), or 0 if theta never
-        crosses 0 (the paper's figure: 1 deg for IDA-PBC, 12 deg for the linear controller).
-        """
-        sign = 1.0 if self.scenario.theta0 >= 0.0 else -1.0
-        worst = float(np.max(-sign * self.theta)) if self.theta.size else 0.0
-        return math.degrees(max(0.0, worst))
-
-    def settling_time_s(self, band_deg: float = SETTLING_BAND_DEG) -> Optional[float]:
-        """
-        Time [s] from the start after which |theta| (true) stays within band_deg for good.
-
-        Defined as the time of the first sample of the final stretch inside the band; None when
-        the robot fell or the run ends outside the band.
-        """
-        if self.fell or self.theta.size == 0:
-            return None
-        outside = np.flatnonzero(np.abs(self.theta) > math.radians(band_deg))
-        if outside.size == 0:
-            return 0.0
-        last = int(outside[-1])
-        if last + 1 >= self.t.size:
-            return None
-        return float(self.t[last + 1])
-
-    def peak_torque_nm(self) -> float:
-        """Largest wheel torque magnitude applied to either wheel [N m]."""
-        if self.t.size == 0:
-            return 0.0
-        return float(max(np.max(np.abs(self.tau_left)), np.max(np.abs(self.tau_right))))
-
-    def velocity_error(self, t_from: float = 0.0) -> Tuple[float, float]:
-        """Return (rms, max) of |x_dot - x_dot_ref| [m/s] over t >= t_from (true speed)."""
-        sel = self.t >= t_from
-        if not np.any(sel):
-            return float('nan'), float('nan')
-        err = self.x_dot[sel] - self.x_dot_ref[sel]
-        return float(np.sqrt(np.mean(err * err))), float(np.max(np.abs(err)))
-
-    def metrics(self) -> dict:
-        """Return the common figures: overshoot, settling time, peak torque, fell."""
-        return {
-            'overshoot_deg': self.overshoot_deg(),
-            'settling_time_s': self.settling_time_s(),
-            'peak_torque_nm': self.peak_torque_nm(),
-            'fell': bool(self.fell),
-            'fall_time_s': self.fall_time,
-            'duration_s': float(self.t[-1] + self.scenario.dt) if self.t.size else 0.0,
-            'cpu_time_s': self.cpu_time,
-        }
-
-
-def plant_accel(theta: float, theta_dot: float, u: float, l: float, l_dot: float,
-                l_ddot: float, m: float, M: float, g: float) -> Tuple[float, float]:
-    """
-    Return (theta_ddot, x_ddot) of model (1) with a moving height (see the module docstring).
-
-    theta [rad], theta_dot [rad/s], u [N], l [m], l_dot [m/s], l_ddot [m/s^2], m (body) and M
-    (wheels) [kg], g [m/s^2]. With l_dot = l_ddot = 0 this is model (1) exactly.
-    """
-    s = math.sin(theta)
-    c = math.cos(theta)
-    f1 = u + m * l * s * theta_dot * theta_dot - m * (l_ddot * s + 2.0 * l_dot * c * theta_dot)
-    f2 = g * s - 2.0 * l_dot * theta_dot
-    x_ddot = (f1 - m * c * f2) / (M + m * s * s)
-    return (f2 - c * x_ddot) / l, x_ddot
+#: The plant is model (1) with the moving-height terms (core/model.py, the one copy).
+plant_accel = ipc_accel_moving
 
 
 class Plant:

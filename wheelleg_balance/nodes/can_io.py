@@ -1,23 +1,24 @@
 """
-The wheel motors' CAN bus for balance_node: python-can on one side, a core protocol on the other.
+The CAN bus of the control loop: python-can on one side, core Frames on the other.
 
-Sending is synchronous from the control thread, one ``bus.send`` with a short timeout per frame
+Sending is synchronous from the control loop, one ``bus.send`` with a short timeout per frame
 (never the kernel's periodic send: it would keep sending the last torque if Python stalled).
 A failed send (``can.CanError``, e.g. the ``CanOperationError`` of a full socketcan TX queue, or
 an OSError) is returned as a message for the safety supervisor, never raised.
-Replies are read by the control thread too: ``poll()`` at the start of each tick drains
-``bus.recv(timeout=0)`` and decodes them with the protocol, keeping, per motor, the monotonic
-time of the last reply, a reply counter and the last feedback. No receive thread: a python-can
-Notifier woke 1000-2000 times a second and competed with the control thread for the GIL
-(docs/benchmarks.md). A reply is thus known to one tick (2 ms), well inside ``motor_timeout``.
+Replies are read by the control loop too: ``poll()`` at the start of each tick drains
+``bus.recv(timeout=0)`` into (receipt time, Frame) pairs for core/balance_loop.py, which decodes
+them. No receive thread: a python-can Notifier woke 1000-2000 times a second and competed with
+the control thread for the GIL (docs/benchmarks.md). A reply is thus known to one tick (2 ms),
+well inside ``motor_timeout``.
 """
 import threading
 import time
-from typing import Callable, Dict, Iterable, Optional
+from typing import Callable, Iterable, List, Optional, Tuple
 
 import can
 
-from ..core.protocols.base import Frame, MotorFeedback, MotorProtocol
+from ..core.can_budget import frame_bits
+from ..core.protocols.base import Frame
 
 
 def open_bus(interface: str, channel: str, udp_port: int = 43113) -> can.BusABC:
@@ -33,18 +34,6 @@ def open_bus(interface: str, channel: str, udp_port: int = 43113) -> can.BusABC:
     return can.Bus(interface=interface, channel=channel)
 
 
-class MotorStatus:
-    """What is known about one motor from its replies (written by ``CanIo.poll``)."""
-
-    __slots__ = ('motor_id', 'last_reply', 'replies', 'feedback')
-
-    def __init__(self, motor_id: int):
-        self.motor_id = motor_id
-        self.last_reply: Optional[float] = None   # monotonic [s]
-        self.replies = 0
-        self.feedback: Optional[MotorFeedback] = None
-
-
 #: Frames one poll reads at most. A 1 Mbit/s bus carries at most about 18 frames per 2 ms tick;
 #: udp_multicast also loops the node's own frames back.
 MAX_FRAMES_PER_POLL = 64
@@ -52,38 +41,37 @@ MAX_FRAMES_PER_POLL = 64
 
 class CanIo:
     """
-    Send frames and track motor replies on one bus.
+    Send frames and collect received ones on one bus.
 
-    ``reply_times`` ({motor_id: monotonic time of the last reply or None}) is what the safety
-    supervisor reads each tick. Counters: tx_frames, tx_errors, rx_frames, rx_replies,
-    rx_errors; last_tx_error / last_rx_error hold the newest error text.
+    Counters: tx_frames, tx_errors, rx_frames, rx_errors; last_tx_error / last_rx_error hold
+    the newest error text; bits: the bit times of the data frames sent and received
+    (core/can_budget.py, worst-case stuffing), for the bus load.
     """
 
-    def __init__(self, bus: can.BusABC, protocol: MotorProtocol, motor_ids: Iterable[int],
-                 send_timeout: float = 0.0005, clock: Callable[[], float] = time.monotonic):
+    def __init__(self, bus: can.BusABC, send_timeout: float = 0.0005,
+                 clock: Callable[[], float] = time.monotonic):
         self.bus = bus
-        self.protocol = protocol
         self.send_timeout = send_timeout
         self._clock = clock
-        self.motors: Dict[int, MotorStatus] = {i: MotorStatus(i) for i in motor_ids}
-        self.reply_times: Dict[int, Optional[float]] = dict.fromkeys(self.motors)
         self.tx_frames = 0
         self.tx_errors = 0
         self.rx_frames = 0
-        self.rx_replies = 0
         self.rx_errors = 0
+        self.bits = 0
         self.last_tx_error = ''
         self.last_rx_error = ''
         self._lock = threading.Lock()
         self._closed = False
 
-    def poll(self, max_frames: int = MAX_FRAMES_PER_POLL) -> int:
+    def poll(self, into: List[Tuple[float, Frame]],
+             max_frames: int = MAX_FRAMES_PER_POLL) -> int:
         """
-        Decode the frames received since the last call; return how many were read.
+        Append the data frames received since the last call to ``into``; return how many.
 
         Never blocks and never raises: a receive error is counted (rx_errors, last_rx_error)
         and ends this poll. At most ``max_frames`` are read, so an error-frame storm cannot
-        hold the tick; the rest wait for the next one.
+        hold the tick; the rest wait for the next one. Error and remote frames are counted
+        and dropped.
         """
         n = 0
         with self._lock:
@@ -95,33 +83,20 @@ class CanIo:
                     if msg is None:
                         break
                     n += 1
-                    self._on_frame(msg)
+                    self.rx_frames += 1
+                    if msg.is_error_frame or msg.is_remote_frame:
+                        continue
+                    self.bits += frame_bits(msg.dlc, msg.is_extended_id)
+                    into.append((self._clock(), Frame(msg.arbitration_id, bytes(msg.data),
+                                                      msg.is_extended_id)))
             except (can.CanError, OSError, ValueError) as exc:
                 self.rx_errors += 1
                 self.last_rx_error = '%s: %s' % (type(exc).__name__, exc)
         return n
 
-    def _on_frame(self, msg: can.Message) -> None:
-        self.rx_frames += 1
-        if msg.is_error_frame or msg.is_remote_frame:
-            return
-        feedback = self.protocol.decode_feedback(
-            Frame(msg.arbitration_id, bytes(msg.data), msg.is_extended_id))
-        if feedback is None:
-            return
-        status = self.motors.get(feedback.motor_id)
-        if status is None:
-            return
-        now = self._clock()
-        status.last_reply = now
-        status.replies += 1
-        status.feedback = feedback
-        self.reply_times[feedback.motor_id] = now
-        self.rx_replies += 1
-
     def send(self, frames: Iterable[Frame]) -> Optional[str]:
         """Send the frames in order; stop at the first failure and return its text (else None)."""
-        with self._lock:  # the control thread and shutdown may both send
+        with self._lock:  # the control loop and shutdown may both send
             if self._closed:
                 return 'bus closed'
             for f in frames:
@@ -134,7 +109,15 @@ class CanIo:
                     self.last_tx_error = '%s: %s' % (type(exc).__name__, exc)
                     return self.last_tx_error
                 self.tx_frames += 1
+                self.bits += frame_bits(len(f.data), f.is_extended_id)
             return None
+
+    def counters(self) -> dict:
+        """Return the counters and last errors, as plain values."""
+        return {'tx_frames': self.tx_frames, 'tx_errors': self.tx_errors,
+                'last_tx_error': self.last_tx_error, 'rx_frames': self.rx_frames,
+                'rx_errors': self.rx_errors, 'last_rx_error': self.last_rx_error,
+                'bits': self.bits}
 
     def close(self) -> None:
         """Shut the bus down (idempotent, never raises)."""

@@ -1,155 +1,91 @@
 """
 sim_node: the simulated robot (sim/robot_sim.py) in real time, with the robot's ROS and CAN faces.
 
-- publishes ``imu`` (sensor_msgs/Imu, frame imu_link) and ``joint_states`` (both wheels and the
-  four hips) every tick, ``publish_rate`` Hz (500), sensor-data QoS; ``~/ground_truth``
-  (std_msgs/Float64MultiArray, field names in ``layout.dim[0].label``) at ``ground_truth_rate``;
-- answers MIT-mode frames on the CAN bus (``can.*``) like the two wheel motors: enter / exit /
-  zero and commands tau = kp (p - q) + kd (v - q_dot) + t evaluated every physics step, applied
-  only between 'enter' and 'exit', clamped to +-can.mit.t_max; one reply per received frame.
+- publishes ``imu`` (sensor_msgs/Imu, frame imu_link) every tick, ``publish_rate`` Hz (500),
+  sensor-data QoS, and ``joint_states`` (both wheels and the four hips) only when asked
+  (``publish_joint_states``, off by default: on the robot nothing publishes them, balance_node
+  reads the motors' replies); ``~/ground_truth`` (std_msgs/Float64MultiArray, field names in
+  ``layout.dim[0].label``) at ``ground_truth_rate``;
+- answers MIT-mode frames on the CAN bus (``can.*``) like the motors do, through one firmware
+  emulator per motor (sim/motor_emulator.py, sim/robot_motors.py): the two wheel motors and
+  the four hip motors (``legs.*``, on the wheels' bus or on a second one,
+  ``legs.can.channel``). Enter / exit / zero (zero in rest mode only) and commands
+  tau = kp (p - q) + kd (v - q_dot) + t evaluated every physics step, applied only in motor
+  mode, clamped to the motor's t_max; one reply per received frame with the true state. Until
+  balance_node drives them the hips are limp: the robot starts as after power-up
+  (``initial_pose: folded``), legs folded onto their stops, resting on its tail;
+- subscribes ``~/hand`` (sensor_msgs/JointState): the builder's hand of the bring-up checks
+  (``bringup --sim``; sim/hand.py). Each named joint (the joint_states names) is pulled from
+  where it is when the message arrives by ``position`` [rad] (its joint convention: wheels
+  forward positive, hips FiveBarLeg's), with at most ``effort`` [N m] (empty: ``hand.max_torque``)
+  and held there; a message without names lets go. With ``initial_pose: stand`` the body sits
+  on a stand at the tail pitch with its wheels free (the bring-up pose).
 
 Conventions (docs/simulation.md): joint_states reports each joint in its own axis convention, as
 a joint_state_broadcaster would. A wheel joint's axis is its motor's shaft, so its position,
 velocity and effort are the motor's (the same numbers as the CAN replies, apart from the motor's
-settable zero): a positive value of the left wheel (can.left_direction = +1) rolls the robot
-forward, of the right wheel (can.right_direction = -1, mirrored motor) backward. The hips are in
-core/kinematics.py FiveBarLeg's convention (direction +1, offset 0). balance_node therefore needs
-left_wheel_direction = can.left_direction and right_wheel_direction = can.right_direction.
+settable zero and the replies' wrap at +-p_max): a positive value of the left wheel
+(can.left_direction = +1) rolls the robot forward, of the right wheel (can.right_direction = -1,
+mirrored motor) backward. The hips are in core/kinematics.py FiveBarLeg's convention.
+balance_node therefore needs left_wheel_direction = can.left_direction and
+right_wheel_direction = can.right_direction. A hip motor reads legs.directions[i] (q - offset)
+(legs.offsets[i]: the joint angle at its zero), or, with legs.power_up, that only modulo one
+rotor turn, as a real motor after power-up (homing resolves it).
 
-A dedicated thread runs the loop: it sleeps to absolute deadlines (start + k period), advances the
-simulation by exactly one period per tick and publishes; ROS spins in the main thread, CAN frames
-are served by a receive thread.
+Parameters: ``SimConfig`` (sim/config.py; ``ros2 param describe /sim_node <name>`` shows each
+one's description and range), all read-only; a wrong value stops the node at start with every
+problem named. A dedicated thread runs the loop on core/deadline.DeadlineLoop: it sleeps to
+absolute deadlines (start + k period), advances the simulation by exactly one period per tick
+and publishes; a late tick is followed at once by the ones it missed until the loop is
+RESYNC_AFTER periods behind, when it restarts its schedule from now (simulated time follows the
+wall clock; late ticks and resyncs are counted). ROS spins in the main thread, CAN frames are
+served by a receive thread per bus. Its participant is UDP-only (nodes/dds.py): a publish
+through Fast DDS's shared memory could hold the loop thread 0.33 s or more while other
+processes come and go (docs/benchmarks.md, "The 0.33 s stall").
+
+``lockstep`` (with balance_node's ``clock_source: imu_stamp``): imu is stamped with the
+simulated time, and each tick first waits (at most ``lockstep_timeout``, wall clock) until
+every motor in motor mode has had a frame since the previous publish: the commands balance_node
+computed from that sample. The loop never catches up in bursts: when the wait or the CPU makes
+it late it simply runs slower than real time (``real_time_factor``). The closed loop is then
+the same on a loaded machine as on an idle one (docs/simulation.md).
 """
-import math
 import sys
 import threading
 import time
-from typing import Dict, List, Optional
+from typing import List, Optional
 
 import can
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 import rclpy
-from rclpy.exceptions import ParameterUninitializedException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
+from rclpy.time import Time
 from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
+from . import lean
 from .can_io import open_bus
+from .dds import apply_udp_only
+from .params import load
+from ..core.deadline import DeadlineLoop
 from ..core.protocols.base import Frame
-from ..core.protocols.mit import MitCommand, MitProtocol
-from ..sim.robot_sim import GROUND_TRUTH_FIELDS, LEG_JOINTS, Push, RobotSim, Slope
+from ..core.schema import to_flat
+from ..optional import MissingDependency
+from ..sim.config import mit_protocol, SimConfig
+from ..sim.layout import WHEEL_JOINTS
 
+try:
+    from ..sim.hand import Hand
+    from ..sim.robot_motors import default_specs, JOINTS, RobotMotors
+    from ..sim.robot_sim import GROUND_TRUTH_FIELDS, Push, RobotSim, Slope
+except MissingDependency as missing:
+    # The executable's module: without MuJoCo there is nothing it can do but say so.
+    raise SystemExit('sim_node: %s' % missing) from None
 
-class MotorEmulator:
-    """
-    One MIT-mode wheel motor (pure Python): its mode, last command and zero offset.
-
-    Positions and velocities passed in are the motor's (direction applied, before the zero).
-    """
-
-    def __init__(self, motor_id: int, torque_limit: float):
-        self.motor_id = motor_id
-        self.torque_limit = torque_limit
-        self.enabled = False
-        self.command: Optional[MitCommand] = None
-        self.zero = 0.0          # motor position that reads as 0 [rad]
-        self.torque = 0.0        # last torque applied [N m]
-        self.frames = 0
-
-    def handle(self, decoded, position: float) -> None:
-        """Act on a decoded frame ('enter', 'exit', 'zero' or a MitCommand)."""
-        self.frames += 1
-        if decoded == 'enter':
-            self.enabled = True
-            self.command = None     # start from zero torque, not a stale command
-        elif decoded == 'exit':
-            self.enabled = False
-            self.command = None
-            self.torque = 0.0
-        elif decoded == 'zero':
-            self.zero = position
-        elif isinstance(decoded, MitCommand):
-            self.command = decoded
-
-    def torque_for(self, position: float, velocity: float) -> float:
-        """Return the motor torque [N m] for the present state (0 outside motor mode), clamped."""
-        cmd = self.command
-        if not self.enabled or cmd is None:
-            self.torque = 0.0
-            return 0.0
-        tau = (cmd.kp * (cmd.position - (position - self.zero))
-               + cmd.kd * (cmd.velocity - velocity) + cmd.torque)
-        lim = self.torque_limit
-        self.torque = min(max(tau, -lim), lim)
-        return self.torque
-
-
-def _f(lo, hi, description, read_only=True):
-    return ParameterDescriptor(description=description, read_only=read_only,
-                               floating_point_range=[FloatingPointRange(from_value=float(lo),
-                                                                        to_value=float(hi))])
-
-
-def _i(lo, hi, description, step=0):
-    return ParameterDescriptor(description=description, read_only=True,
-                               integer_range=[IntegerRange(from_value=lo, to_value=hi,
-                                                           step=step)])
-
-
-def _s(description):
-    return ParameterDescriptor(description=description, read_only=True)
-
-
-#: name -> (default, descriptor); list parameters without a default are in LIST_PARAMS.
-PARAMS = {
-    'publish_rate': (500.0, _f(10.0, 2000.0, 'loop and imu/joint_states rate [Hz]')),
-    'ground_truth_rate': (100.0, _f(0.0, 1000.0, '~/ground_truth rate [Hz] (0: off)')),
-    'imu_frame_id': ('imu_link', _s('frame_id of imu')),
-    'imu_pitch_offset': (math.radians(2.2), _f(-0.5, 0.5, 'IMU pitch mounting offset d [rad]: '
-                                               'the IMU reads theta + d (the paper: ~2.2 deg)')),
-    'initial_pose': ('tail', _s("'tail': rest on the tail; 'pitch': wheels on the floor, body "
-                                'at initial_pitch (falls unless balanced at once)')),
-    'initial_pitch': (0.0, _f(-1.5, 1.5, 'body pitch for initial_pose pitch [rad]')),
-    'height': (0.37, _f(0.37, 0.70, 'body height l [m] when no height_schedule is given')),
-    'bump_height': (0.02, _f(0.001, 0.1, 'height of the bumps [m]')),
-    'slope.enabled': (False, _s('put a ramp under one wheel (paper experiment 8)')),
-    'slope.start_x': (1.0, _f(-100.0, 100.0, 'x where the ramp leaves the floor [m]')),
-    'slope.length': (1.2, _f(0.1, 10.0, 'ramp length [m]')),
-    'slope.angle': (math.radians(7.0), _f(0.0, 0.5, 'ramp angle [rad]')),
-    'slope.side': ('left', _s("wheel track of the ramp: 'left' or 'right'")),
-    'left_wheel_joint': ('left_wheel_joint', _s('joint_states name of the left wheel')),
-    'right_wheel_joint': ('right_wheel_joint', _s('joint_states name of the right wheel')),
-    'leg_joints': (list(LEG_JOINTS), _s('joint_states names of the hips: left front, left '
-                                        'rear, right front, right rear')),
-    'can.interface': ('virtual', _s('python-can interface: virtual (one process), '
-                                    'udp_multicast (between processes) or socketcan')),
-    'can.channel': ('wheelleg_sim', _s('python-can channel (udp_multicast: the group)')),
-    'can.udp_port': (43113, _i(1, 65535, 'UDP port of the udp_multicast interface')),
-    'can.protocol': ('mit', _s('motor protocol; only mit is simulated')),
-    'can.left_motor_id': (1, _i(1, 2047, 'CAN ID of the left wheel motor')),
-    'can.right_motor_id': (2, _i(1, 2047, 'CAN ID of the right wheel motor')),
-    'can.left_direction': (1, _i(-1, 1, '+1 when a positive torque of the left motor drives '
-                                 'the wheel forward, else -1', step=2)),
-    'can.right_direction': (-1, _i(-1, 1, '+1 when a positive torque of the right motor '
-                                   'drives the wheel forward, else -1', step=2)),
-    'can.master_id': (0, _i(0, 2047, 'standard ID the motors reply on')),
-    'can.mit.p_max': (12.5, _f(0.1, 1000.0, 'MIT position range +-p_max [rad]')),
-    'can.mit.v_max': (50.0, _f(0.1, 1000.0, 'MIT velocity range +-v_max [rad/s]')),
-    'can.mit.kp_max': (500.0, _f(0.1, 10000.0, 'MIT kp range 0..kp_max [N m/rad]')),
-    'can.mit.kd_max': (5.0, _f(0.01, 1000.0, 'MIT kd range 0..kd_max [N m s/rad]')),
-    'can.mit.t_max': (18.0, _f(0.1, 18.0, 'MIT torque range and motor limit +-t_max [N m] '
-                               "(the model's actuators stop at 18)")),
-}
-LIST_PARAMS = {
-    'height_schedule': 'flat [t0, l0, t1, l1, ...]: height l [m] at simulated time t [s], '
-                       'linear in between; unset: constant height',
-    'pushes': 'flat [start, duration, force_x, force_y, ...]: pushes on the body [s, s, N, N] '
-              'in world axes; unset: none',
-    'bumps': 'x positions of bumps across the floor [m]; unset: none',
-}
+#: The loop serves every missed deadline until this many periods behind, then restarts its
+#: schedule from now (simulated time follows the wall clock; a resync is counted).
+RESYNC_AFTER = 20
 
 
 class SimNode(Node):
@@ -157,130 +93,150 @@ class SimNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__('sim_node', **kwargs)
-        p = {}
-        for name, (default, desc) in PARAMS.items():
-            p[name] = self.declare_parameter(name, default, desc).value
-        for name, text in LIST_PARAMS.items():
-            self.declare_parameter(name, Parameter.Type.DOUBLE_ARRAY, _s(text))
-            try:
-                p[name] = list(self.get_parameter(name).value)
-            except ParameterUninitializedException:
-                p[name] = []
-        self.params = p
-        if p['can.protocol'] != 'mit':
-            raise ValueError('sim_node simulates MIT-mode motors only (can.protocol: mit)')
-        if p['can.left_motor_id'] == p['can.right_motor_id']:
-            raise ValueError('the two motors need different CAN IDs')
-        sched = p['height_schedule']
-        pushes = p['pushes']
-        if len(sched) % 2 or len(pushes) % 4 or len(p['leg_joints']) != 4:
-            raise ValueError('height_schedule needs pairs, pushes groups of 4, leg_joints 4 '
-                             'names')
+        self.config = cfg = load(self, SimConfig)   # ValueError with every problem
+        #: {parameter name: value} of the configuration (what the tests and logs read).
+        self.params = to_flat(cfg)
+        pushes = cfg.pushes
         slope = None
-        if p['slope.enabled']:
-            slope = Slope(p['slope.start_x'], p['slope.length'], p['slope.angle'],
-                          p['slope.side'])
+        if cfg.slope.enabled:
+            sl = cfg.slope
+            slope = Slope(sl.start_x, sl.length, sl.angle, sl.side)
         self.sim = RobotSim(
-            d_offset=p['imu_pitch_offset'], height=p['height'],
-            height_schedule=list(zip(sched[0::2], sched[1::2])),
+            d_offset=cfg.imu_pitch_offset, height=cfg.height,
             pushes=[Push(*pushes[i:i + 4]) for i in range(0, len(pushes), 4)],
-            bumps=p['bumps'], bump_height=p['bump_height'], slope=slope)
-        self.sim.reset(p['initial_pose'], pitch=p['initial_pitch'])
+            bumps=cfg.bumps, bump_height=cfg.bump_height, slope=slope, legs='motors')
+        self.sim.reset(cfg.initial_pose, pitch=cfg.initial_pitch, lift=cfg.stand_lift)
 
-        t_max = p['can.mit.t_max']
-        self.protocol = MitProtocol(
-            p_min=-p['can.mit.p_max'], p_max=p['can.mit.p_max'], v_min=-p['can.mit.v_max'],
-            v_max=p['can.mit.v_max'], kp_max=p['can.mit.kp_max'], kd_max=p['can.mit.kd_max'],
-            t_min=-t_max, t_max=t_max, master_id=p['can.master_id'])
-        # Index 0 = left wheel, 1 = right wheel.
-        self.motors = [MotorEmulator(p['can.left_motor_id'], t_max),
-                       MotorEmulator(p['can.right_motor_id'], t_max)]
-        self.directions = (p['can.left_direction'], p['can.right_direction'])
-        self._motor_by_id: Dict[int, int] = {m.motor_id: i for i, m in enumerate(self.motors)}
-        # Motor-side state (position, velocity) per wheel, refreshed every physics step.
-        self._motor_state = [(0.0, 0.0), (0.0, 0.0)]
+        c, legs, fw = cfg.can, cfg.legs, cfg.can.firmware
+        self.protocol = mit_protocol(c.mit, c.master_id)
+        self.directions = (c.left_direction, c.right_direction)
+        specs = default_specs(
+            (c.left_motor_id, c.right_motor_id), self.directions, tuple(legs.motor_ids),
+            tuple(legs.directions), tuple(legs.offsets), hip_bus=1 if cfg.second_bus else 0)
+        self.motors = RobotMotors(
+            self.sim, specs, self.protocol, mit_protocol(legs.mit, c.master_id),
+            gear_ratio=legs.gear_ratio, command_timeout=fw.command_timeout,
+            timeout_action=fw.timeout_action, wrap=fw.wrap,
+            reply_temperature=fw.reply_temperature, power_up=legs.power_up)
+        for e in self.motors.emulators.values():
+            e.miswired = e.motor_id == cfg.fault.miswired_motor_id
+        h = cfg.hand
+        self.motors.hand = Hand(len(JOINTS), h.kp, h.kd, h.max_torque)
+        self._hand_joints = {name: k for k, name in enumerate(
+            [cfg.left_wheel_joint, cfg.right_wheel_joint] + list(cfg.leg_joints))}
+        self._channels = cfg.channels
 
-        self.period = 1.0 / p['publish_rate']
-        self.substeps = max(1, int(round(self.period / self.sim.timestep)))
+        self.substeps = max(1, int(round((1.0 / cfg.publish_rate) / self.sim.timestep)))
         self.period = self.substeps * self.sim.timestep  # whole physics steps per tick
-        gt_rate = p['ground_truth_rate']
+        gt_rate = cfg.ground_truth_rate
         self._gt_every = max(1, int(round(1.0 / (gt_rate * self.period)))) if gt_rate else 0
+        # A tick that starts more than a period after its deadline is late. In lockstep a late
+        # tick restarts the schedule: simulated time slows down instead of bursting.
+        self.loop = DeadlineLoop(self.period, max_catch_up=None,
+                                 resync_after=0 if cfg.lockstep else RESYNC_AFTER,
+                                 late_after=self.period, on_error=self._on_tick_error)
+        self._commands = threading.Condition()
+        self._marks: Optional[dict] = None
+        #: lockstep: ticks whose commands did not come within lockstep_timeout.
+        self.lockstep_timeouts = 0
+        self._wall_start: Optional[float] = None
 
-        self.imu_pub = self.create_publisher(Imu, 'imu', qos_profile_sensor_data)
+        self.imu_pub = self.create_publisher(Imu, 'imu', qos_profile_sensor_data,
+                                             event_callbacks=lean.publisher_events())
         self.joint_pub = self.create_publisher(JointState, 'joint_states',
-                                               qos_profile_sensor_data)
-        self.gt_pub = self.create_publisher(Float64MultiArray, '~/ground_truth', 10)
+                                               qos_profile_sensor_data,
+                                               event_callbacks=lean.publisher_events())
+        self.gt_pub = self.create_publisher(Float64MultiArray, '~/ground_truth', 10,
+                                            event_callbacks=lean.publisher_events())
+        self.create_subscription(JointState, '~/hand', self._on_hand, 10,
+                                 event_callbacks=lean.subscription_events())
         self._imu = Imu()
-        self._imu.header.frame_id = p['imu_frame_id']
+        self._imu.header.frame_id = cfg.imu_frame_id
         self._joints = JointState()
-        self._joints.name = [p['left_wheel_joint'], p['right_wheel_joint']] + list(
-            p['leg_joints'])
+        self._joints.name = [cfg.left_wheel_joint, cfg.right_wheel_joint] + list(
+            cfg.leg_joints)
+        self._wheel_emulators = [self.motors.motor(j) for j in WHEEL_JOINTS]
         self._gt = Float64MultiArray()
         self._gt.layout.dim = [MultiArrayDimension(label=','.join(GROUND_TRUTH_FIELDS),
                                                    size=len(GROUND_TRUTH_FIELDS),
                                                    stride=len(GROUND_TRUTH_FIELDS))]
 
-        self.bus: Optional[can.BusABC] = None
+        self.buses: List[can.BusABC] = []
         self._stop = threading.Event()
         self._threads: List[threading.Thread] = []
-        # Loop statistics.
-        self.ticks = 0
-        self.late_ticks = 0      # ticks that started after their deadline + one period
-        self.resyncs = 0         # times the loop gave up catching up
         self.can_frames = 0
         self.can_replies = 0
         self.can_errors = 0
 
+    # ---- loop statistics --------------------------------------------------------------------
+
+    @property
+    def ticks(self) -> int:
+        """Return the ticks run so far."""
+        return self.loop.ticks
+
+    @property
+    def late_ticks(self) -> int:
+        """Return the ticks that started more than one period after their deadline."""
+        return self.loop.late
+
+    @property
+    def real_time_factor(self) -> float:
+        """Return simulated time over wall time since the loop started (1.0: real time)."""
+        if self._wall_start is None:
+            return float('nan')
+        return self.motors.time / max(time.monotonic() - self._wall_start, 1e-9)
+
+    @property
+    def resyncs(self) -> int:
+        """Return how often the loop gave up catching up (RESYNC_AFTER periods behind)."""
+        return self.loop.resyncs
+
     # ---- lifecycle --------------------------------------------------------------------------
 
+    @property
+    def bus(self) -> Optional[can.BusABC]:
+        """Return the bus of the wheel motors (None before start)."""
+        return self.buses[0] if self.buses else None
+
     def start(self) -> None:
-        """Open the CAN bus and start the loop and CAN threads."""
-        p = self.params
-        self.bus = open_bus(p['can.interface'], p['can.channel'], p['can.udp_port'])
-        self._update_motor_state()
-        self._threads = [threading.Thread(target=self._loop, name='sim_loop', daemon=True),
-                         threading.Thread(target=self._can_loop, name='sim_can', daemon=True)]
+        """Open the CAN bus(es) and start the loop and CAN threads."""
+        c = self.config.can
+        self.buses = [open_bus(c.interface, channel, c.udp_port) for channel in self._channels]
+        self._threads = [threading.Thread(target=self.loop.run, args=(self._tick,),
+                                          name='sim_loop', daemon=True)]
+        self._threads += [threading.Thread(target=self._can_loop, args=(k,),
+                                           name='sim_can%d' % k, daemon=True)
+                          for k in range(len(self.buses))]
         for t in self._threads:
             t.start()
+        motors = ', '.join('%s %d' % (s.joint, s.motor_id) for s in self.motors.specs)
         self.get_logger().info(
-            'simulating at %.0f Hz (%d x %.1f ms physics steps), CAN %s %s, motors %d/%d' % (
-                1.0 / self.period, self.substeps, 1e3 * self.sim.timestep, p['can.interface'],
-                p['can.channel'], self.motors[0].motor_id, self.motors[1].motor_id))
+            'simulating at %.0f Hz (%d x %.1f ms physics steps), pose %s, CAN %s %s, motors: %s'
+            % (1.0 / self.period, self.substeps, 1e3 * self.sim.timestep,
+               self.config.initial_pose, c.interface, ' + '.join(self._channels), motors))
 
     def stop(self) -> None:
-        """Stop the threads and close the bus (idempotent)."""
+        """Stop the threads and close the buses (idempotent)."""
         self._stop.set()
+        self.loop.stop()
         for t in self._threads:
             t.join(timeout=2.0)
         self._threads = []
-        if self.bus is not None:
+        for bus in self.buses:
             try:
-                self.bus.shutdown()
+                bus.shutdown()
             except Exception:  # noqa: B902 -- closing must not fail the shutdown path
                 pass
-            self.bus = None
+        self.buses = []
 
     # ---- simulation loop --------------------------------------------------------------------
 
-    def _update_motor_state(self) -> None:
-        wheel_q = self.sim.wheel_angles()
-        wheel_v = self.sim.wheel_velocities()
-        dirs = self.directions
-        self._motor_state = [(dirs[0] * wheel_q[0], dirs[0] * wheel_v[0]),
-                             (dirs[1] * wheel_q[1], dirs[1] * wheel_v[1])]
-
-    def _physics_tick(self) -> None:
-        sim, motors, dirs = self.sim, self.motors, self.directions
-        dt = sim.timestep
-        for _ in range(self.substeps):
-            (ql, vl), (qr, vr) = self._motor_state
-            tau_l = dirs[0] * motors[0].torque_for(ql, vl)
-            tau_r = dirs[1] * motors[1].torque_for(qr, vr)
-            sim.step(tau_l, tau_r, dt)
-            self._update_motor_state()
-
     def _publish(self) -> None:
-        stamp = self.get_clock().now().to_msg()
+        if self.config.lockstep:
+            stamp = Time(nanoseconds=int(round(self.motors.time * 1e9))).to_msg()
+        else:
+            stamp = self.get_clock().now().to_msg()
         (qx, qy, qz, qw), gyro, acc = self.sim.imu()
         imu = self._imu
         imu.header.stamp = stamp
@@ -292,71 +248,90 @@ class SimNode(Node):
         a.x, a.y, a.z = acc
         self.imu_pub.publish(imu)
 
-        js = self._joints
-        js.header.stamp = stamp
-        (ql, vl), (qr, vr) = self._motor_state
-        js.position = [ql, qr] + list(self.sim.leg_angles())
-        js.velocity = [vl, vr] + list(self.sim.leg_velocities())
-        js.effort = [self.motors[0].torque, self.motors[1].torque] + list(
-            self.sim.leg_torques())
-        self.joint_pub.publish(js)
+        if self.config.publish_joint_states:
+            js = self._joints
+            js.header.stamp = stamp
+            # Wheels in their motor's convention (direction applied, no zero), hips in
+            # FiveBarLeg's.
+            d = self.directions
+            wq, wv = self.sim.wheel_angles(), self.sim.wheel_velocities()
+            js.position = [d[0] * wq[0], d[1] * wq[1]] + list(self.sim.leg_angles())
+            js.velocity = [d[0] * wv[0], d[1] * wv[1]] + list(self.sim.leg_velocities())
+            js.effort = [e.motor_torque for e in self._wheel_emulators] + list(
+                self.sim.leg_torques())
+            self.joint_pub.publish(js)
 
         if self._gt_every and self.ticks % self._gt_every == 0:
             gt = self.sim.ground_truth()
             self._gt.data = [gt[k] for k in GROUND_TRUTH_FIELDS]
             self.gt_pub.publish(self._gt)
 
-    def _loop(self) -> None:
-        period = self.period
-        deadline = time.monotonic()
-        while not self._stop.is_set():
-            try:
-                self._physics_tick()
-                self._publish()
-            except Exception as exc:  # noqa: B902 -- keep the robot alive; report it
-                if self._stop.is_set() or not rclpy.ok(context=self.context):
-                    return
-                self.get_logger().error('sim tick failed: %r' % exc)
-            self.ticks += 1
-            deadline += period
-            delay = deadline - time.monotonic()
-            if delay > 0.0:
-                time.sleep(delay)
-            elif delay < -period:
-                self.late_ticks += 1
-                if delay < -20.0 * period:  # far behind: restart the schedule from now
-                    self.resyncs += 1
-                    deadline = time.monotonic()
+    def _on_hand(self, msg: JointState) -> None:
+        # The builder's hand (bring-up): displacements from where the joints are now.
+        moves, limits = {}, {}
+        for i, name in enumerate(msg.name):
+            k = self._hand_joints.get(name)
+            if k is None or i >= len(msg.position):
+                self.get_logger().warning('~/hand: no joint %r with a position' % name)
+                continue
+            moves[k] = float(msg.position[i])
+            if i < len(msg.effort):
+                limits[k] = float(msg.effort[i])
+        if moves:
+            self.motors.hand.grab(moves, self.motors.joint_angles(), limits)
+        else:
+            self.motors.hand.release()
+
+    def _tick(self, now_ns: int) -> None:
+        if self._wall_start is None:
+            self._wall_start = time.monotonic()
+        if self.config.lockstep and self._marks is not None:
+            self._wait_for_commands()
+        # Exactly one period of simulated time per tick, whenever the tick runs.
+        self.motors.step(self.period)
+        if self.config.lockstep:
+            with self._commands:
+                self._marks = self.motors.command_marks()
+        self._publish()
+
+    def _wait_for_commands(self) -> None:
+        """Lockstep: wait until the motors in motor mode have the tick's commands."""
+        with self._commands:
+            if not self._commands.wait_for(lambda: self.motors.commanded(self._marks),
+                                           self.config.lockstep_timeout):
+                if not self._stop.is_set():
+                    self.lockstep_timeouts += 1
+
+    def _on_tick_error(self, now_ns: int, exc: BaseException) -> None:
+        if self._stop.is_set() or not rclpy.ok(context=self.context):
+            self.loop.stop()   # shutting down: the publishers are gone
+            return
+        self.get_logger().error('sim tick failed: %r' % exc)
 
     # ---- CAN --------------------------------------------------------------------------------
 
-    def _can_loop(self) -> None:
+    def _can_loop(self, index: int) -> None:
+        bus = self.buses[index]
         while not self._stop.is_set():
             try:
-                msg = self.bus.recv(timeout=0.05)
+                msg = bus.recv(timeout=0.05)
             except (can.CanError, OSError, ValueError):
                 self.can_errors += 1
                 time.sleep(0.01)
                 continue
             if msg is None or msg.is_error_frame or msg.is_remote_frame:
                 continue
-            index = self._motor_by_id.get(msg.arbitration_id)
-            if index is None or msg.is_extended_id:
-                continue  # another node's frame, or our own reply
-            decoded = self.protocol.decode_command(
-                Frame(msg.arbitration_id, bytes(msg.data), msg.is_extended_id))
-            if decoded is None:
+            # None: another node's frame, our own reply, or not a command frame.
+            with self._commands:
+                reply = self.motors.handle(
+                    Frame(msg.arbitration_id, bytes(msg.data), msg.is_extended_id), index)
+                self._commands.notify()
+            if reply is None:
                 continue
             self.can_frames += 1
-            motor = self.motors[index]
-            position, velocity = self._motor_state[index]
-            motor.handle(decoded, position)
-            torque = motor.torque_for(position, velocity)
-            reply = self.protocol.encode_reply(motor.motor_id, position - motor.zero, velocity,
-                                               torque)
             try:
-                self.bus.send(can.Message(arbitration_id=reply.arbitration_id,
-                                          data=reply.data, is_extended_id=False), timeout=0.01)
+                bus.send(can.Message(arbitration_id=reply.arbitration_id,
+                                     data=reply.data, is_extended_id=False), timeout=0.01)
                 self.can_replies += 1
             except (can.CanError, OSError, ValueError):
                 self.can_errors += 1
@@ -367,6 +342,9 @@ def main(args=None) -> None:
     # The CAN thread answers ~1000 frames/s: hand the GIL over sooner than the default 5 ms so
     # the loop thread wakes at its deadlines.
     sys.setswitchinterval(0.0005)
+    # Its publishes hold the GIL; through Fast DDS's shared memory one could wait 0.33 s or
+    # more for another process and freeze the simulation with it (docs/benchmarks.md).
+    apply_udp_only()
     rclpy.init(args=args)
     node = None
     try:
@@ -379,9 +357,10 @@ def main(args=None) -> None:
         if node is not None:
             node.stop()
             # The context may be gone (SIGTERM): write to stderr, not through rosout.
-            print('[sim_node] stopped after %d ticks (%d late, %d resyncs), %d CAN frames'
-                  % (node.ticks, node.late_ticks, node.resyncs, node.can_frames),
-                  file=sys.stderr)
+            print('[sim_node] stopped after %d ticks (%d late, %d resyncs), %d CAN frames, '
+                  'real-time factor %.2f, %d lockstep timeouts'
+                  % (node.ticks, node.late_ticks, node.resyncs, node.can_frames,
+                     node.real_time_factor, node.lockstep_timeouts), file=sys.stderr)
             node.destroy_node()
         if rclpy.ok():
             rclpy.shutdown()

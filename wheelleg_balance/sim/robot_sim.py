@@ -8,8 +8,14 @@ motor directions are the node's business. Wheel angles and velocities are measur
 the leg* (the front shank that carries the wheel motor), as the motor encoders measure them;
 leg joint angles are in core/kinematics.py FiveBarLeg's convention.
 
-Scenario features: rest on the tail or start at a pitch, a piecewise-linear height schedule
-(the four hip servos follow FiveBarLeg.inverse), pushes on the body (xfrc_applied for a
+The hips: ``legs='motors'`` drives them by torque (the hip motors' torques are an input of
+``step``, in FiveBarLeg's convention: positive increases q, the thigh down), as MIT motor
+emulators do for sim_node (sim/robot_motors.py): what the robot has. ``legs='servo'`` (the
+default) holds the legs at a set height with built-in position servos through
+FiveBarLeg.inverse: for plants whose host drives only the wheels (the fault suite's
+validation/faults/plants.py MujocoPlant, the URDF check), and the settling of the 'tail' pose.
+
+Scenario features: rest on the tail or start at a pitch, pushes on the body (xfrc_applied for a
 duration), bumps (capsules lying across the floor at given x) and a slope under the left wheel
 (a box tilted by the slope angle). A test stand (a mocap weld) holds the body in a given pose.
 """
@@ -18,27 +24,27 @@ import math
 import pathlib
 from typing import Dict, Iterable, List, Optional, Sequence, Tuple
 
-import mujoco
 import numpy as np
 
+from .layout import HIP_TORQUE_LIMIT, LEG_JOINTS, LEG_MODES, WHEEL_JOINTS, WHEEL_TORQUE_LIMIT
 from ..core.kinematics import FiveBarLeg
+from ..optional import require
+
+# Only the simulator needs MuJoCo (not a run-time dependency of the robot): say so if absent.
+mujoco = require('mujoco', 'the simulated robot (sim_node, main_job, the fault suite)')
 
 MODEL_PATH = pathlib.Path(__file__).with_name('robot.xml')
 
 #: Wheel radius r_w [m] and track d_w [m] of robot.xml (Table I).
 WHEEL_RADIUS = 0.1
 WHEEL_SEPARATION = 0.47
-#: Torque range of the wheel motors' actuators [N m] (the MIT limit of the AK80-9 class).
-WHEEL_TORQUE_LIMIT = 18.0
+#: Actuator groups of robot.xml: hip torque motors and the transitional hip servos.
+_HIP_MOTOR_GROUP, _HIP_SERVO_GROUP = 2, 1
 #: How far the wheels sink into the floor at rest under the robot's weight [m] (soft contact).
 CONTACT_DEPTH = 0.0003
-#: Hip joints, in the order of ``leg_angles()``: left front, left rear, right front, right rear.
-LEG_JOINTS = ('left_leg_front_joint', 'left_leg_rear_joint',
-              'right_leg_front_joint', 'right_leg_rear_joint')
-WHEEL_JOINTS = ('left_wheel_joint', 'right_wheel_joint')
 #: Labels of ``ground_truth()`` values, in order.
 GROUND_TRUTH_FIELDS = ('time', 'theta', 'theta_dot', 'x', 'y', 'x_dot', 'yaw', 'yaw_rate',
-                       'roll', 'l', 'tau_left', 'tau_right')
+                       'roll', 'l', 'tau_left', 'tau_right', 'tail_contact', 'body_contact')
 
 
 @dataclass(frozen=True)
@@ -88,18 +94,19 @@ class RobotSim:
     The MuJoCo robot with the scenario around it (see the module docstring).
 
     d_offset: IMU pitch mounting offset d [rad] (the IMU reads theta~ = theta + d);
-    height: initial body height l [m] (COM above the wheel axle), used until the schedule says
-    otherwise; height_schedule: [(t [s], l [m]), ...] piecewise-linear in simulated time, held
-    before the first and after the last point; pushes: Push events; bumps: x positions [m] of
-    bumps of height bump_height [m]; slope: a Slope or None; leg: the five-bar geometry that
-    robot.xml is built with (FiveBarLeg defaults).
+    height: initial body height l [m] (COM above the wheel axle; with legs='servo' the servos'
+    height); pushes: Push events; bumps: x positions [m] of bumps of height bump_height [m];
+    slope: a Slope or None; leg: the five-bar geometry that robot.xml is built with
+    (FiveBarLeg defaults); legs: 'servo' (default) or 'motors' (LEG_MODES).
     """
 
     def __init__(self, d_offset: float = 0.0, height: float = 0.37,
-                 height_schedule: Sequence[Tuple[float, float]] = (),
                  pushes: Iterable[Push] = (), bumps: Iterable[float] = (),
                  bump_height: float = 0.02, slope: Optional[Slope] = None,
-                 leg: Optional[FiveBarLeg] = None):
+                 leg: Optional[FiveBarLeg] = None, legs: str = 'servo'):
+        if legs not in LEG_MODES:
+            raise ValueError('legs must be one of %s' % ', '.join(LEG_MODES))
+        self.legs = legs
         self.leg = leg or FiveBarLeg()
         self.model = self._build_model(list(bumps), bump_height, slope)
         self.data = mujoco.MjData(self.model)
@@ -108,6 +115,7 @@ class RobotSim:
         self._base = m.body('base_link').id
         self._wheels = [m.body(n).id for n in ('left_wheel', 'right_wheel')]
         self._tail_wheel = m.geom('tail_wheel').id
+        self._body_geom = m.geom('body').id
         self._imu_site = m.site('imu').id
         self._stand_eq = m.equality('stand').id
         self._stand_mocap = m.body_mocapid[m.body('stand').id]
@@ -118,17 +126,18 @@ class RobotSim:
         self._knee_q = [m.jnt_qposadr[m.joint(n).id] for n in
                         ('left_front_knee', 'left_rear_knee', 'right_front_knee',
                          'right_rear_knee')]
+        self._motor_q = [int(i) for i in self._wheel_q + self._leg_q]
+        self._motor_v = [int(i) for i in self._wheel_v + self._leg_v]
         self._wheel_act = [m.actuator(n).id for n in ('left_wheel', 'right_wheel')]
-        self._leg_act = [m.actuator(n).id for n in
-                         ('left_leg_front', 'left_leg_rear', 'right_leg_front',
-                          'right_leg_rear')]
+        hips = ('left_leg_front', 'left_leg_rear', 'right_leg_front', 'right_leg_rear')
+        self._leg_act = [m.actuator(n).id for n in hips]
+        self._servo_act = [m.actuator(n + '_servo').id for n in hips]
         self._sensor = {n: (m.sensor_adr[m.sensor(n).id], m.sensor_dim[m.sensor(n).id])
                         for n in ('imu_quat', 'imu_gyro', 'imu_accel')}
         self._vel6 = np.zeros(6)
         self.pushes: List[Push] = list(pushes)
-        self.height_schedule: List[Tuple[float, float]] = sorted(
-            (float(t), float(v)) for t, v in height_schedule)
         self.set_imu_offset(d_offset)
+        self._use_servos(legs == 'servo')
         self._height_target = float('nan')
         self.set_height(height)
         self.reset('tail')
@@ -167,6 +176,11 @@ class RobotSim:
             g.contype, g.conaffinity, g.condim = 1, 1, 3
         return spec.compile()
 
+    def _use_servos(self, on: bool) -> None:
+        """Drive the hips by the transitional servos (on) or by the hip torque motors (off)."""
+        off = _HIP_MOTOR_GROUP if on else _HIP_SERVO_GROUP
+        self.model.opt.disableactuator = 1 << off
+
     def set_imu_offset(self, d_offset: float) -> None:
         """Mount the IMU pitched by d [rad] about the body y axis: it reads theta + d."""
         self.d_offset = float(d_offset)
@@ -180,30 +194,24 @@ class RobotSim:
 
     def _leg_pose(self, l: float) -> Tuple[float, float, float, float]:
         """(q_front, q_rear, front knee, rear knee) [rad] of a leg closed at height l [m]."""
-        leg = self.leg
-        q_f, q_r = leg.inverse(l)
+        q_f, q_r = self.leg.inverse(l)
         if q_f != q_f:
             raise ValueError("height %.3f m is out of the legs' reach" % l)
-        a, h = leg.thigh, 0.5 * leg.hip_spacing
-        xc, zc = leg.com_x, leg.com_height - l   # axle in the hip-midpoint frame
-        kfx, kfz = h + a * math.cos(q_f), -a * math.sin(q_f)
-        krx, krz = -h - a * math.cos(q_r), -a * math.sin(q_r)
-        phi = math.atan2(-(zc - kfz), xc - kfx)     # front shank below the forward horizontal
-        psi = math.atan2(-(zc - krz), -(xc - krx))  # rear shank below the backward horizontal
-        return q_f, q_r, phi - q_f, psi - q_r
+        return (q_f, q_r) + self.leg.knee_angles(q_f, q_r)
 
     def place(self, pitch: float, x: float = 0.0, yaw: float = 0.0) -> None:
         """
         Put the robot at rest with its wheels on the floor at x [m], pitched by pitch [rad].
 
-        The legs are set closed at the height target of time 0; velocities are zero.
+        The legs are set closed at the set height (``set_height``); velocities are zero.
         """
         m, d = self.model, self.data
         d.qpos[:] = m.qpos0
         d.qvel[:] = 0.0
         d.qacc_warmstart[:] = 0.0
         d.xfrc_applied[:] = 0.0
-        l0 = self.height_target(0.0)
+        d.qfrc_applied[:] = 0.0
+        l0 = self._height_target
         q_f, q_r, k_f, k_r = self._leg_pose(l0)
         for side in (0, 2):
             d.qpos[self._leg_q[side]] = q_f
@@ -224,7 +232,7 @@ class RobotSim:
         """
         Pitch [rad] at which the tail wheel touches the floor with both wheels down.
 
-        Geometric, at the height target of time 0; the simulation state is left as it was.
+        Geometric, at the set height; the simulation state is left as it was.
         """
         d = self.data
         saved = (d.qpos.copy(), d.qvel.copy(), d.ctrl.copy(), d.xfrc_applied.copy(), d.time)
@@ -232,7 +240,7 @@ class RobotSim:
         for _ in range(40):  # bisection on the tail wheel's lowest point
             mid = 0.5 * (lo + hi)
             self.place(mid)
-            if self._tail_clearance() > 0.0:
+            if self.tail_clearance() > 0.0:
                 lo = mid
             else:
                 hi = mid
@@ -240,7 +248,8 @@ class RobotSim:
         mujoco.mj_forward(self.model, d)
         return 0.5 * (lo + hi)
 
-    def _tail_clearance(self) -> float:
+    def tail_clearance(self) -> float:
+        """Height [m] of the tail wheel's rim above the floor (<= 0: touching it)."""
         d = self.data
         centre_z = d.geom_xpos[self._tail_wheel][2]
         radius = self.model.geom_size[self._tail_wheel][0]
@@ -248,24 +257,61 @@ class RobotSim:
         return centre_z - radius
 
     def reset(self, pose: str = 'tail', pitch: float = 0.0, x: float = 0.0,
-              settle: float = 0.3) -> None:
+              settle: float = 0.3, lift: float = 0.05) -> None:
         """
         Restart at time 0 in a pose.
 
         'tail' rests on the tail (then ``settle`` s with zero torque); 'pitch' puts the wheels
-        on the floor with the body at ``pitch`` [rad] (not settled). x: axle position [m].
+        on the floor with the body at ``pitch`` [rad] (not settled); 'folded' (legs='motors'):
+        the robot as after power-up, hips limp, legs folded down to their lower stops and the
+        body resting on its tail (``settle`` s with every motor off); 'stand' (legs='motors'):
+        the bring-up stand, the body held at the tail rest's pitch ``lift`` [m] above it, wheels
+        free, the legs folded at their lower stops while it settles (powered up folded) and
+        hanging limp from time 0. x: axle position [m].
+        With legs='motors' the settling holds the legs at the initial height with the servos
+        (as if the hip motors had held them): time 0 starts settled, hip torques zero.
         """
         self.release()
         if pose == 'tail':
             self.place(self.tail_rest_pitch() + 1e-3, x)
             self.data.time = 0.0
             n = int(round(settle / self.timestep))
+            self._use_servos(True)
             for _ in range(n):
                 mujoco.mj_step(self.model, self.data)
+            self._use_servos(self.legs == 'servo')
         elif pose == 'pitch':
             self.place(pitch, x)
+        elif pose == 'folded':
+            if self.legs != 'motors':
+                raise ValueError("pose 'folded' needs legs='motors' (the servos hold the legs)")
+            target = self._height_target
+            q = self.leg.q_min + 1e-3
+            self._height_target = self.leg.height(q, q)
+            self.place(self.tail_rest_pitch() + 1e-3, x)
+            self._height_target = target
+            self.data.time = 0.0
+            for _ in range(int(round(max(settle, 0.5) / self.timestep))):
+                self.step(0.0, 0.0, self.timestep, (0.0, 0.0, 0.0, 0.0))
+        elif pose == 'stand':
+            if self.legs != 'motors':
+                raise ValueError("pose 'stand' needs legs='motors' (the hips hang limp)")
+            # Held at the pitch of the tail rest at the initial height (what balance_node arms
+            # from, tail_pitch), the legs folded under it.
+            rest = self.tail_rest_pitch() + 1e-3
+            target = self._height_target
+            q = self.leg.q_min + 1e-3
+            self._height_target = self.leg.height(q, q)
+            self.place(rest, x)            # the servos' targets: the legs folded
+            self._height_target = target
+            self.hold(rest, float(self.data.qpos[2]) + lift, x)
+            self.data.time = 0.0
+            self._use_servos(True)
+            for _ in range(int(round(settle / self.timestep))):
+                mujoco.mj_step(self.model, self.data)
+            self._use_servos(False)
         else:
-            raise ValueError("pose must be 'tail' or 'pitch'")
+            raise ValueError("pose must be 'tail', 'pitch', 'folded' or 'stand'")
         self.data.time = 0.0
 
     # ---- test stand -------------------------------------------------------------------------
@@ -299,29 +345,17 @@ class RobotSim:
         return float(self.data.time)
 
     def set_height(self, l: float) -> None:
-        """Command the body height l [m] (hip servos); a height schedule overrides it."""
+        """Set the body height l [m]: the servos' target, or with legs='motors' the initial one."""
         self._leg_pose(l)  # raises when out of reach
         self._height_target = float(l)
         self._apply_height(l)
-
-    def height_target(self, t: float) -> float:
-        """Commanded height [m] at simulated time t [s] (schedule, else the set height)."""
-        sched = self.height_schedule
-        if not sched:
-            return self._height_target
-        if t <= sched[0][0]:
-            return sched[0][1]
-        for (t0, l0), (t1, l1) in zip(sched, sched[1:]):
-            if t < t1:
-                return l0 + (l1 - l0) * (t - t0) / (t1 - t0)
-        return sched[-1][1]
 
     def _apply_height(self, l: float) -> None:
         q_f, q_r = self.leg.inverse(l)
         if q_f != q_f:
             return  # out of reach: keep the last target
         ctrl = self.data.ctrl
-        a = self._leg_act
+        a = self._servo_act
         ctrl[a[0]] = ctrl[a[2]] = q_f
         ctrl[a[1]] = ctrl[a[3]] = q_r
 
@@ -335,25 +369,40 @@ class RobotSim:
                 fz += p.force_z
         return fx, fy, fz
 
-    def step(self, tau_left: float, tau_right: float, dt: Optional[float] = None) -> None:
+    def step(self, tau_left: float, tau_right: float, dt: Optional[float] = None,
+             hip_torques: Optional[Sequence[float]] = None) -> None:
         """
-        Advance dt [s] (rounded to whole physics steps, at least one) with the wheel torques.
+        Advance dt [s] (rounded to whole physics steps, at least one) with the motor torques.
 
         tau_left, tau_right: forward-positive wheel torques [N m], clamped to +-18 N m (a
-        non-finite value gives zero). The height schedule and pushes are applied every step.
+        non-finite value gives zero). hip_torques (legs='motors'): the four hip torques [N m]
+        in LEG_JOINTS order and FiveBarLeg's convention, clamped to +-HIP_TORQUE_LIMIT; None
+        keeps the last ones; ignored with legs='servo'. The torques are held over dt: for a
+        motor's impedance law evaluated at every physics step, step one timestep at a time
+        (sim/robot_motors.py does). Pushes are applied every step.
         """
         m, d = self.model, self.data
         n = 1 if dt is None else max(1, int(round(dt / self.timestep)))
         d.ctrl[self._wheel_act[0]] = _clamp_torque(tau_left)
         d.ctrl[self._wheel_act[1]] = _clamp_torque(tau_right)
+        if hip_torques is not None and self.legs == 'motors':
+            for a, tau in zip(self._leg_act, hip_torques):
+                d.ctrl[a] = _clamp_torque(tau, HIP_TORQUE_LIMIT)
         base_force = d.xfrc_applied[self._base]
         for _ in range(n):
-            t = d.time
-            if self.height_schedule:
-                self._apply_height(self.height_target(t))
             if self.pushes:
-                base_force[0:3] = self.push_force(t)
+                base_force[0:3] = self.push_force(d.time)
             mujoco.mj_step(m, d)
+
+    def apply_joint_torques(self, torques: Sequence[float]) -> None:
+        """
+        Apply external torques [N m] to the six motor joints (WHEEL_JOINTS, then LEG_JOINTS).
+
+        A hand's, not a motor's (sim/hand.py): held until changed, not shown as motor torques.
+        """
+        f = self.data.qfrc_applied
+        for i, tau in zip(self._motor_v, torques):
+            f[i] = tau if -math.inf < tau < math.inf else 0.0
 
     # ---- readings ---------------------------------------------------------------------------
 
@@ -390,6 +439,17 @@ class RobotSim:
         c = self.data.ctrl
         return float(c[self._wheel_act[0]]), float(c[self._wheel_act[1]])
 
+    def motor_joints(self) -> Tuple[List[float], List[float], float]:
+        """
+        Return (angles, velocities, time) of the six motor joints at once, for the emulators.
+
+        WHEEL_JOINTS then LEG_JOINTS, in the conventions of wheel_angles and leg_angles [rad,
+        rad/s]; time [s].
+        """
+        d = self.data
+        q, v = d.qpos.tolist(), d.qvel.tolist()   # faster than fancy indexing, per step
+        return [q[i] for i in self._motor_q], [v[i] for i in self._motor_v], d.time
+
     def leg_angles(self) -> Tuple[float, float, float, float]:
         """Hip angles [rad] (FiveBarLeg convention) in LEG_JOINTS order."""
         q = self.data.qpos
@@ -401,9 +461,12 @@ class RobotSim:
         return tuple(float(v[i]) for i in self._leg_v)
 
     def leg_torques(self) -> Tuple[float, float, float, float]:
-        """Hip servo torques [N m] in LEG_JOINTS order."""
+        """Hip torques being applied [N m] in LEG_JOINTS order (the motors', or the servos')."""
+        if self.legs == 'motors':
+            c = self.data.ctrl
+            return tuple(float(c[i]) for i in self._leg_act)
         f = self.data.actuator_force
-        return tuple(float(f[i]) for i in self._leg_act)
+        return tuple(float(f[i]) for i in self._servo_act)
 
     def pendulum(self) -> Dict[str, float]:
         """
@@ -445,7 +508,9 @@ class RobotSim:
         theta: body pitch [rad] (what an IMU without offset reads) and theta_dot its rate;
         x, y: world position of the wheel-axle midpoint [m]; x_dot: its speed along the heading
         [m/s]; yaw, yaw_rate [rad, rad/s] (positive turns left); roll [rad]; l: the body COM's
-        height above the axle midpoint, along the body z axis [m]; applied wheel torques.
+        height above the axle midpoint, along the body z axis [m]; applied wheel torques;
+        tail_contact, body_contact: 1.0 while the tail wheel, the body box touches the floor or
+        the terrain, else 0.0 (only they and the wheels can touch the world).
         """
         m, d = self.model, self.data
         roll, pitch, yaw = euler_zyx(*d.xquat[self._base])
@@ -463,16 +528,22 @@ class RobotSim:
         rot = d.xmat[self._base].reshape(3, 3)
         l = float((rot.T @ (d.xipos[self._base] - axle))[2])
         tau_l, tau_r = self.wheel_torques()
+        tail = body = 0.0
+        for c in d.contact[:d.ncon]:
+            if self._tail_wheel in (c.geom1, c.geom2):
+                tail = 1.0
+            elif self._body_geom in (c.geom1, c.geom2):
+                body = 1.0
         return {
             'time': float(d.time), 'theta': pitch, 'theta_dot': float(theta_dot),
             'x': float(axle[0]), 'y': float(axle[1]),
             'x_dot': float(lin[0] * math.cos(yaw) + lin[1] * math.sin(yaw)),
             'yaw': yaw, 'yaw_rate': yaw_rate, 'roll': roll, 'l': l,
-            'tau_left': tau_l, 'tau_right': tau_r,
+            'tau_left': tau_l, 'tau_right': tau_r, 'tail_contact': tail, 'body_contact': body,
         }
 
 
-def _clamp_torque(tau: float) -> float:
+def _clamp_torque(tau: float, limit: float = WHEEL_TORQUE_LIMIT) -> float:
     if not -math.inf < tau < math.inf:
         return 0.0
-    return min(max(float(tau), -WHEEL_TORQUE_LIMIT), WHEEL_TORQUE_LIMIT)
+    return min(max(float(tau), -limit), limit)

@@ -71,6 +71,16 @@ class MotorProtocol(ABC):
     def decode_feedback(self, frame: Frame) -> Optional[MotorFeedback]:
         """Decode a motor's reply; None for a frame that is not one (never raises)."""
 
+    def reply_motor_id(self, frame: Frame) -> Optional[int]:
+        """
+        Return the ID of the motor a reply comes from; None for a frame that is not one.
+
+        Cheaper than decoding where the protocol allows (a bus carries other motors' replies
+        too: each motor set decodes only its own). Never raises.
+        """
+        feedback = self.decode_feedback(frame)
+        return None if feedback is None else feedback.motor_id
+
 
 def frame_bytes(frame: Frame) -> Optional[bytes]:
     """Return a standard frame's data as bytes; None if extended or malformed (never raises)."""

@@ -13,6 +13,7 @@ Controller User Guide, "CAN communication protocol"):
 Torque <-> current through the M3508 P19's torque constant 0.3 N m/A at the output shaft
 (DJI M3508 P19 specifications; the gearbox ratio is 3591/187 ~ 19.2). So 20 A is 6 N m.
 The ESC has no enable: enable_frames is empty and disable_frames commands zero current.
+``decode_command`` and ``encode_feedback`` are the ESC's side (sim/motor_emulator.py).
 """
 import math
 import struct
@@ -118,3 +119,35 @@ class DjiC620Protocol(MotorProtocol):
             rpm * (2.0 * math.pi / 60.0) / self.gear_ratio,
             current * (CURRENT_MAX / CURRENT_CODE_MAX) * self.torque_constant,
             float(temperature))
+
+    # ---- ESC side (emulated ESCs) ----------------------------------------------------------
+
+    def decode_command(self, frame: Frame) -> Optional[Dict[int, int]]:
+        """
+        Decode a current command as the ESCs do: {ESC ID: current code}; None if not one.
+
+        A 0x200 frame carries ESCs 1-4, a 0x1FF frame ESCs 5-8 (8 bytes, standard ID).
+        """
+        data = frame_bytes(frame)
+        if data is None or len(data) != 8:
+            return None
+        first = {COMMAND_ID_1_4: 1, COMMAND_ID_5_8: 5}.get(frame.arbitration_id)
+        if first is None:
+            return None
+        return dict(zip(range(first, first + 4), _FOUR_INT16.unpack(data)))
+
+    def encode_feedback(self, esc_id: int, angle_code: int, rpm: int, current_code: int,
+                        temperature: int) -> Frame:
+        """
+        Encode ESC ``esc_id``'s feedback frame on 0x200 + esc_id from raw field values.
+
+        angle_code: rotor angle 0..8191 (wrapped); rpm: rotor speed; current_code: torque
+        current in command codes; temperature [deg C]; each clamped into its field.
+        """
+        fields = (angle_code % ENCODER_COUNTS, _clamp(rpm, -32768, 32767),
+                  _clamp(current_code, -32768, 32767), _clamp(temperature, 0, 255))
+        return Frame(FEEDBACK_BASE_ID + esc_id, _FEEDBACK.pack(*fields))
+
+
+def _clamp(x: int, lo: int, hi: int) -> int:
+    return min(max(int(x), lo), hi)

@@ -38,6 +38,22 @@ def float_to_uint(x: float, x_min: float, x_max: float, bits: int) -> int:
     return int((x - x_min) * ((1 << bits) - 1) / (x_max - x_min))
 
 
+def float_to_uint_wrapping(x: float, x_min: float, x_max: float, bits: int) -> int:
+    """
+    Map x as the motor firmware packs a reply field: no clamp, only the low ``bits`` bits.
+
+    bgkatz/motorcontrol packs the reply's position, velocity and torque with a float_to_uint
+    that does not clamp (Core/Src/math_ops.c) and stores only the low bits (Core/Src/can.c
+    pack_reply), so a value beyond [x_min, x_max] wraps around by 2^bits codes; the C cast
+    truncates towards zero, as int() does. CubeMars AK firmware wraps too (neurobionics/
+    TMotorCANControl mit_can.py counts the wraps: "The TMotor will wrap around to -max at the
+    limits for all values it returns"). NaN maps like 0.0.
+    """
+    if x != x:
+        x = 0.0
+    return int((x - x_min) * ((1 << bits) - 1) / (x_max - x_min)) & ((1 << bits) - 1)
+
+
 def uint_to_float(x_int: int, x_min: float, x_max: float, bits: int) -> float:
     """Inverse of float_to_uint (up to its truncation): the value the motor decodes."""
     return x_int * (x_max - x_min) / ((1 << bits) - 1) + x_min
@@ -161,12 +177,10 @@ class MitProtocol(MotorProtocol):
         Accepted on a standard ID equal to master_id or to the motor ID in byte 0; anything
         else (other lengths, extended IDs, other IDs) gives None.
         """
+        motor_id = self.reply_motor_id(frame)
+        if motor_id is None:
+            return None
         data = frame_bytes(frame)
-        if data is None or len(data) not in (6, 8):
-            return None
-        motor_id = data[0]
-        if frame.arbitration_id != self.master_id and frame.arbitration_id != motor_id:
-            return None
         p = (data[1] << 8) | data[2]
         v = (data[3] << 4) | (data[4] >> 4)
         t = ((data[4] & 0xF) << 8) | data[5]
@@ -177,6 +191,16 @@ class MitProtocol(MotorProtocol):
         return MotorFeedback(motor_id, uint_to_float(p, self.p_min, self.p_max, 16),
                              uint_to_float(v, self.v_min, self.v_max, 12),
                              uint_to_float(t, self.t_min, self.t_max, 12), temperature, error)
+
+    def reply_motor_id(self, frame: Frame) -> Optional[int]:
+        """Return byte 0 of what decode_feedback would accept as a reply, else None."""
+        data = frame_bytes(frame)
+        if data is None or len(data) not in (6, 8):
+            return None
+        motor_id = data[0]
+        if frame.arbitration_id != self.master_id and frame.arbitration_id != motor_id:
+            return None
+        return motor_id
 
     # ---- motor side (simulated robot) ------------------------------------------------------
 
@@ -206,16 +230,19 @@ class MitProtocol(MotorProtocol):
                           uint_to_float(t, self.t_min, self.t_max, 12))
 
     def encode_reply(self, motor_id: int, position: float, velocity: float, torque: float,
-                     temperature: Optional[float] = None, error: int = 0) -> Frame:
+                     temperature: Optional[float] = None, error: int = 0,
+                     wrap: bool = False) -> Frame:
         """
         Encode the motor's reply on master_id: 6 bytes, or 8 with temperature and error code.
 
-        temperature [deg C]. Values are clamped to the ranges (non-finite ones sent as 0), as the
-        firmware does.
+        temperature [deg C]. Non-finite values are sent as 0. Values beyond the ranges are
+        clamped, or with ``wrap`` wrap around as the firmware sends them (float_to_uint_wrapping:
+        a position of p_max + 0.1 rad reads about p_min + 0.1 rad).
         """
-        p = float_to_uint(_finite(position), self.p_min, self.p_max, 16)
-        v = float_to_uint(_finite(velocity), self.v_min, self.v_max, 12)
-        t = float_to_uint(_finite(torque), self.t_min, self.t_max, 12)
+        pack = float_to_uint_wrapping if wrap else float_to_uint
+        p = pack(_finite(position), self.p_min, self.p_max, 16)
+        v = pack(_finite(velocity), self.v_min, self.v_max, 12)
+        t = pack(_finite(torque), self.t_min, self.t_max, 12)
         fields = [motor_id & 0xFF, p >> 8, p & 0xFF, v >> 4, ((v & 0xF) << 4) | (t >> 8),
                   t & 0xFF]
         if temperature is not None:

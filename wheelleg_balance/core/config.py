@@ -1,0 +1,496 @@
+"""
+The configuration of one robot for balance_node: every parameter once (docs/interface.md).
+
+``BalanceConfig`` is a tree of sections (frozen dataclasses). Each field states its default,
+meaning, unit, range and whether it can change while the node runs (core/schema.py); the node
+derives its parameter declarations and descriptors from it, ``config/*.yaml`` are checked against
+it by the tests, and the tick (core/balance_loop.py) is built from it. Read-only parameters are
+those the node cannot change while running (model, joint names, CAN set-up, loop timing); the
+others are applied at the next control tick.
+
+Section prefixes give the ROS names: the model, control, joint, safety, loop and publication
+sections sit at the top level (``body_mass``, ``fall_angle``), the others under their prefix
+(``ida_pbc.k``, ``can.mit.t_max``).
+"""
+from dataclasses import dataclass
+import math
+from typing import List
+
+from .lqr import DEFAULT_Q, DEFAULT_R
+from .params import IdaPbcGains, RobotParams
+from .pipeline import CONTROLLER_NAMES
+from .protocols import PROTOCOLS
+from .schema import param, section, to_flat
+
+RO = True
+#: Values of ``can.protocol``.
+PROTOCOL_NAMES = tuple(PROTOCOLS)
+#: Values of ``clock_source``: what paces the control loop (nodes/control_process.py).
+CLOCK_SOURCES = ('wall', 'imu_stamp')
+
+
+def _direction(default: int, description: str):
+    # An integer range -1..1 with step 2 admits exactly -1 and +1.
+    return param(default, description, -1, 1, read_only=RO, step=2)
+
+
+@dataclass(frozen=True)
+class ControlConfig:
+    """The controller and its shared tuning."""
+
+    controller: str = param('ida_pbc', 'balance controller: %s; switchable live, bumpless, at '
+                            'the next control tick' % ' | '.join(CONTROLLER_NAMES),
+                            choices=CONTROLLER_NAMES)
+    height: float = param(0.37, 'body height l [m] used when no leg joints are configured; '
+                          'within height_min..height_max', 0.05, 3.0)
+    compensate_offset: bool = param(True, 'IDA-PBC uses theta~ - d_hat (removes the velocity '
+                                    'bias an IMU offset causes; the paper leaves it in)',
+                                    read_only=RO, name='ida_pbc.compensate_offset')
+    d_hat0: float = param(0.0, 'initial estimate of the IMU pitch offset d [rad] at arm (the '
+                          'paper used 2.7 deg)', -0.5, 0.5)
+    yaw_rate_gain: float = param(0.3, 'tau_gamma = yaw_rate_gain (yaw rate - yaw rate*) '
+                                 '[N m s/rad], Sec. V-A', 0.0, 10.0)
+    switch_blend_time: float = param(0.1, 'controller switch: time over which the jump in u '
+                                     'fades out [s]', 0.0, 5.0)
+
+
+@dataclass(frozen=True)
+class OutputRegulationConfig:
+    """Output regulation (9)-(10): the LQR weights of the k_x schedule over l."""
+
+    q_diag: List[float] = param([float(q) for q in DEFAULT_Q.diagonal()],
+                                'LQR state weights diag(Q) for [theta, theta_dot, x, x_dot] '
+                                '(k_x = lqr(A(l), B(l)))', 0.0, 1e12, read_only=RO, length=4)
+    r: float = param(DEFAULT_R, 'LQR input weight R [1/N^2]', 1e-9, 1e6, read_only=RO)
+
+
+@dataclass(frozen=True)
+class JointsConfig:
+    """Names and signs of the joints in sensor_msgs/JointState."""
+
+    left_wheel_joint: str = param('left_wheel_joint', 'joint_states name of the left wheel',
+                                  read_only=RO)
+    right_wheel_joint: str = param('right_wheel_joint', 'joint_states name of the right wheel',
+                                   read_only=RO)
+    left_wheel_direction: int = _direction(1, '+1 when a positive joint_states velocity of the '
+                                           'left wheel rolls the robot forward, else -1')
+    right_wheel_direction: int = _direction(1, '+1 when a positive joint_states velocity of '
+                                            'the right wheel rolls the robot forward, else -1')
+    left_leg_front_joint: str = param('', 'joint_states name of the left leg front hip '
+                                      '(q_front of core/kinematics.py FiveBarLeg); empty: no leg '
+                                      'joints, l is the height parameter', read_only=RO)
+    left_leg_rear_joint: str = param('', 'joint_states name of the left leg rear hip (q_rear)',
+                                     read_only=RO)
+    right_leg_front_joint: str = param('', 'joint_states name of the right leg front hip',
+                                       read_only=RO)
+    right_leg_rear_joint: str = param('', 'joint_states name of the right leg rear hip',
+                                      read_only=RO)
+    leg_joint_directions: List[int] = param(
+        [1, 1, 1, 1], 'sign from joint_states position to the FiveBarLeg angle, order left '
+        'front, left rear, right front, right rear', -1, 1, read_only=RO, step=2, length=4)
+    leg_joint_offsets: List[float] = param(
+        [0.0, 0.0, 0.0, 0.0], 'FiveBarLeg angle at joint position zero [rad], same order: '
+        'q = offset + direction * position', -10.0, 10.0, read_only=RO, length=4)
+
+    @property
+    def leg_names(self):
+        """Hip joint names: left front, left rear, right front, right rear."""
+        return (self.left_leg_front_joint, self.left_leg_rear_joint,
+                self.right_leg_front_joint, self.right_leg_rear_joint)
+
+    def problems(self) -> List[str]:
+        """Check that a leg has both its hip names or none."""
+        n = self.leg_names
+        if bool(n[0]) != bool(n[1]) or bool(n[2]) != bool(n[3]):
+            return ['a leg needs both its front and rear joint names']
+        return []
+
+
+@dataclass(frozen=True)
+class LegGeometry:
+    """The five-bar leg's links (core/kinematics.py FiveBarLeg)."""
+
+    thigh: float = param(0.30, 'five-bar thigh length [m]', 0.01, 2.0, read_only=RO)
+    shank: float = param(0.42, 'five-bar shank length [m]', 0.01, 2.0, read_only=RO)
+    hip_spacing: float = param(0.10, 'distance between the two hip axes [m]', 0.0, 1.0,
+                               read_only=RO)
+    com_height: float = param(0.05, 'body centre of mass above the hip midpoint [m]', -1.0,
+                              1.0, read_only=RO)
+    com_x: float = param(0.0, 'body centre of mass ahead of the hip midpoint [m]', -1.0, 1.0,
+                         read_only=RO)
+
+
+@dataclass(frozen=True)
+class SafetyConfig:
+    """Thresholds of the safety supervisor (core/safety.py)."""
+
+    max_wheel_torque: float = param(12.0, 'torque limit of each wheel [N m]', 0.0, 100.0)
+    max_pitch_rate: float = param(35.0, '|IMU pitch rate| beyond which a sample is '
+                                  'implausible: fault [rad/s] (35 rad/s = 2000 deg/s gyro full '
+                                  'scale)', 1.0, 1000.0)
+    max_wheel_velocity: float = param(45.0, '|wheel velocity| beyond which a sample is '
+                                      'implausible or the wheels spin free: fault [rad/s] (45 '
+                                      'rad/s = 4.5 m/s on 0.1 m wheels, below the 50 rad/s an MIT '
+                                      'reply can report)', 1.0, 10000.0)
+    fall_angle: float = param(math.radians(45.0), '|theta~| beyond which the robot has fallen: '
+                              'fault [rad] (keep it above the tail rest, about 0.63 rad, to '
+                              'start from the tail)', 0.05, 1.5)
+    fall_roll_angle: float = param(math.radians(30.0), '|roll| beyond which the robot lies on '
+                                   "a side: fault [rad] (the paper's slope rolled it 19 deg "
+                                   'with fixed legs)', 0.05, 1.5)
+    tail_pitch: float = param(math.radians(36.0), 'pitch of the robot resting on its tail '
+                              '[rad]', 0.1, 1.5, read_only=RO)
+    arm_pose_tolerance: float = param(math.radians(10.0), 'arming from the tail: |pitch - '
+                                      'tail_pitch| and |roll| within this [rad]', 0.01, 0.5)
+    arm_upright_pitch: float = param(math.radians(20.0), 'arming upright: |theta~| within '
+                                     'this [rad] (also the folded rest on the tail, about 10 '
+                                     'deg) ...', 0.01, 0.5)
+    arm_still_rate: float = param(0.3, '... and |pitch rate| below this [rad/s]', 0.01, 5.0)
+    imu_timeout: float = param(0.05, 'IMU sample age that is a fault [s]', 0.004, 2.0)
+    joint_state_timeout: float = param(0.05, 'joint-state sample age that is a fault [s]',
+                                       0.004, 2.0)
+    motor_timeout: float = param(0.05, 'time a commanded wheel motor may stay without a CAN '
+                                 'reply [s]', 0.004, 2.0)
+    cmd_vel_timeout: float = param(0.5, 'cmd_vel age after which the references ramp to zero '
+                                   '[s] (not a fault)', 0.01, 60.0)
+    lift_wheel_inertia: float = param(0.0075, 'lifted check: one wheel with its rotor, '
+                                      'inertia about the axle [kg m^2] (a 1.5 kg, 0.1 m disc)',
+                                      1e-5, 1.0, read_only=RO)
+    lift_window: float = param(0.02, 'lifted check: window over which wheel speed changes are '
+                               "compared with a free wheel's [s]", 0.004, 0.2)
+    lift_min_dv: float = param(3.0, 'lifted check: speed change a free wheel would have had '
+                               'in the window, below which nothing is judged [rad/s]', 0.5,
+                               50.0)
+    lift_ratio: float = param(0.8, 'lifted check: measured / free-wheel speed change from '
+                              'which a wheel counts as free (MuJoCo: 1.04 in the air; on the '
+                              'ground <= 0.45, 0.71 under a 600 N push that topples it)', 0.2,
+                              1.0)
+    lift_free_time: float = param(0.03, 'lifted check: both wheels free this long is a fault '
+                                  '[s] (one wheel: three times as long; a bump lifts them for '
+                                  'less)', 0.0, 1.0)
+    lift_min_load: float = param(0.25, 'lifted check (driven legs): share of the weight per '
+                                 'leg (m g / 2, from the hip torques) below which the legs '
+                                 'count as unloaded', 0.0, 1.0)
+    lift_unloaded_time: float = param(0.05, 'lifted check: legs unloaded this long is a fault '
+                                      '[s] (a drop of 1.2 cm takes 50 ms)', 0.01, 1.0)
+    stamp_tolerance: float = param(0.1, 'an IMU sample stamped ahead of our clock by more than '
+                                   'this is refused, as is one whose stamp runs backwards [s] '
+                                   '(clocks of two machines that are not synchronized)', 0.0,
+                                   10.0)
+    auto_arm: bool = param(False, 'arm by itself once, as soon as the sensors are fresh and no '
+                           'fault condition is present (start-up only)', read_only=RO)
+
+
+@dataclass(frozen=True)
+class ImuConfig:
+    """How the IMU sits in the body (core/attitude.py)."""
+
+    imu_mounting_rpy: List[float] = param(
+        [0.0, 0.0, 0.0], "the IMU frame's rotation relative to base_link [roll, pitch, yaw] "
+        "[rad] (REP 103, as a URDF joint origin's rpy); the small unknown pitch offset d is "
+        "the observer's", -6.3, 6.3, read_only=RO, length=3)
+
+
+@dataclass(frozen=True)
+class ReferenceConfig:
+    """Limits of the reference shaping of cmd_vel (core/safety.py ReferenceShaper)."""
+
+    max_velocity: float = param(1.0, 'limit of x_dot* [m/s]', 0.0, 5.0)
+    max_acceleration: float = param(1.0, 'limit of the rate of change of x_dot* [m/s^2]', 0.01,
+                                    50.0)
+    max_yaw_rate: float = param(3.0, 'limit of yaw rate* [rad/s]', 0.0, 20.0)
+    max_yaw_acceleration: float = param(6.0, 'limit of the rate of change of yaw rate* '
+                                        '[rad/s^2]', 0.01, 200.0)
+
+
+@dataclass(frozen=True)
+class MitLimits:
+    """The MIT-mode motor model's ranges (they must match the firmware's build)."""
+
+    p_max: float = param(12.5, 'MIT position range +-p_max [rad]', 0.1, 1000.0, read_only=RO)
+    v_max: float = param(50.0, 'MIT velocity range +-v_max [rad/s]', 0.1, 1000.0, read_only=RO)
+    kp_max: float = param(500.0, 'MIT kp range 0..kp_max [N m/rad]', 0.1, 10000.0,
+                          read_only=RO)
+    kd_max: float = param(5.0, 'MIT kd range 0..kd_max [N m s/rad]', 0.01, 1000.0,
+                          read_only=RO)
+    t_max: float = param(18.0, 'MIT torque range +-t_max [N m]', 0.1, 1000.0, read_only=RO)
+    temp_derate: float = param(70.0, "motor temperature (the 8-byte reply's) from which its "
+                               'torque limit falls linearly, to half at temp_max [deg C] (the '
+                               "motor model's data sheet)", -40.0, 200.0, read_only=RO)
+    temp_max: float = param(85.0, 'motor temperature at which balancing ends: the sit-down, '
+                            'arming refused until it cools [deg C]', -40.0, 200.0,
+                            read_only=RO)
+    position_jump: float = param(0.3, 'a reply position this far off the extrapolation of the '
+                                 'previous reply is a reboot: fault [rad] (a rotor turn of a '
+                                 '9:1 gear is 0.70 rad)', 0.01, 10.0, read_only=RO)
+
+    def codec_ranges(self) -> dict:
+        """Keyword arguments of core/protocols/mit.MitProtocol for these ranges."""
+        return {'p_min': -self.p_max, 'p_max': self.p_max, 'v_min': -self.v_max,
+                'v_max': self.v_max, 'kp_max': self.kp_max, 'kd_max': self.kd_max,
+                't_min': -self.t_max, 't_max': self.t_max}
+
+
+@dataclass(frozen=True)
+class DjiConfig:
+    """DJI C620 + M3508 P19 figures (core/protocols/dji.py)."""
+
+    torque_constant: float = param(0.3, 'dji_c620: output torque per ampere [N m/A] (M3508 '
+                                   'P19)', 0.001, 100.0, read_only=RO)
+    gear_ratio: float = param(3591.0 / 187.0, 'dji_c620: rotor turns per output turn', 0.01,
+                              1000.0, read_only=RO)
+    current_limit: float = param(20.0, 'dji_c620: current limit [A] (C620: 20 A)', 0.1, 20.0,
+                                 read_only=RO)
+    temp_derate: float = param(70.0, 'dji_c620: motor temperature from which the torque limit '
+                               'falls linearly, to half at temp_max [deg C]', -40.0, 200.0,
+                               read_only=RO)
+    temp_max: float = param(85.0, 'dji_c620: motor temperature at which balancing ends [deg C]',
+                            -40.0, 200.0, read_only=RO)
+
+
+@dataclass(frozen=True)
+class CanConfig:
+    """The wheel motors' bus, protocol, IDs and directions."""
+
+    interface: str = param('socketcan', 'python-can interface: socketcan on the robot, virtual '
+                           '(one process) or udp_multicast (between processes) for tests',
+                           read_only=RO)
+    channel: str = param('can0', 'python-can channel (udp_multicast: the group, e.g. '
+                         '239.74.163.2)', read_only=RO)
+    udp_port: int = param(43113, 'UDP port of the udp_multicast interface (python-can default '
+                          '43113)', 1, 65535, read_only=RO)
+    protocol: str = param('mit', 'wheel motor protocol: %s' % ' | '.join(PROTOCOL_NAMES),
+                          read_only=RO, choices=PROTOCOL_NAMES)
+    left_motor_id: int = param(1, 'CAN ID of the left wheel motor', 0, 2047, read_only=RO)
+    right_motor_id: int = param(2, 'CAN ID of the right wheel motor', 0, 2047, read_only=RO)
+    left_direction: int = _direction(1, '+1 when a positive torque of the left motor drives '
+                                     'the wheel forward, else -1 (also applied to its '
+                                     'feedback)')
+    right_direction: int = _direction(-1, '+1 when a positive torque of the right motor drives '
+                                      'the wheel forward, else -1 (mirrored mounting)')
+    send_timeout: float = param(0.0005, 'timeout of one bus.send [s]; a send that fails is a '
+                                'fault', 0.0, 0.01, read_only=RO)
+    bitrate: int = param(1000000, "the bus's bit rate [bit/s] as ip link sets it (the load "
+                         'in diagnostics is reckoned from it)', 10000, 1000000, read_only=RO)
+    tx_queue_len: int = param(1000, "the interface's txqueuelen [frames] (ip link; SocketCAN's "
+                              'default 10 is too short): a catch-up after a late tick sends '
+                              'at most this many frames back to back', 1, 100000,
+                              read_only=RO)
+    mit: MitLimits = section(MitLimits, 'mit')
+    dji: DjiConfig = section(DjiConfig, 'dji')
+
+    def problems(self) -> List[str]:
+        """Check that the two wheel motors have different IDs."""
+        if self.left_motor_id == self.right_motor_id:
+            return ['can.left_motor_id and can.right_motor_id must differ']
+        return []
+
+
+#: Values of ``wheel_state_source``.
+WHEEL_STATE_SOURCES = ('can', 'joint_states')
+#: Values of ``legs.homing``.
+HOMING_METHODS = ('set_zero', 'hard_stops')
+
+
+@dataclass(frozen=True)
+class WheelStateConfig:
+    """Where the wheel speeds come from (core/wheel_state.py)."""
+
+    wheel_state_source: str = param(
+        'can', "can: the wheel motors' CAN replies (the robot: the encoders sit in the foot "
+        "motors); joint_states: another driver's sensor_msgs/JointState on joint_states_in",
+        read_only=RO, choices=WHEEL_STATE_SOURCES)
+    wheel_speed_time_constant: float = param(
+        0.1, 'time constant of the blend of reported speed and position differences [s] '
+        '(core/wheel_state.py: removes the 12-bit speed quantization)', 0.005, 2.0,
+        read_only=RO)
+    position_wraps: bool = param(True, "the motors' position reply wraps at +-p_max (bgkatz "
+                                 'and CubeMars firmware); false: it saturates', read_only=RO,
+                                 name='can.mit.wrap')
+
+
+@dataclass(frozen=True)
+class LegsConfig:
+    """The four hip motors that set the height (core/legs.py), when ``legs.driven``."""
+
+    driven: bool = param(False, 'balance_node drives the four hip motors (false: the legs are '
+                         'not driven, l comes from joint_states_in or the height parameter)',
+                         read_only=RO)
+    motor_ids: List[int] = param([3, 4, 5, 6], 'CAN IDs of the hip motors: left front, left '
+                                 'rear, right front, right rear', 1, 2047, read_only=RO,
+                                 length=4)
+    directions: List[int] = param([1, 1, 1, 1], 'per hip motor: +1 when a positive motor '
+                                  'position increases the joint angle q (FiveBarLeg '
+                                  'convention), else -1', -1, 1, read_only=RO, step=2,
+                                  length=4)
+    offsets: List[float] = param([0.0, 0.0, 0.0, 0.0], 'per hip motor: the joint angle q '
+                                 "[rad] at the motor's zero (homing: set_zero), or a first "
+                                 'guess (hard_stops)', -10.0, 10.0, read_only=RO, length=4)
+    kp: float = param(60.0, 'hip impedance stiffness [N m/rad]', 0.0, 500.0)
+    kd: float = param(3.0, 'hip impedance damping [N m s/rad]', 0.0, 5.0)
+    damping_kd: float = param(5.0, 'hip damping on disarm and faults: kp 0, this kd '
+                              '[N m s/rad] (the body is lowered, not dropped)', 0.01, 5.0)
+    damping_gravity: float = param(0.6, "share of the weight's static hip torque kept while "
+                                   'damping (0: pure damping)', 0.0, 1.0)
+    channel: str = param('', "CAN channel of the hips' bus ('' = the wheels' bus)",
+                         read_only=RO, name='legs.can.channel')
+    command_divider: int = param(1, 'send the hip commands every n-th tick (CAN budget: 2 = '
+                                 '250 Hz)', 1, 10, read_only=RO)
+    max_height_rate: float = param(0.1, 'limit of the rate of the height reference [m/s]',
+                                   0.01, 1.0)
+    max_height_accel: float = param(0.2, 'limit of the acceleration of the height reference '
+                                    '[m/s^2]', 0.01, 5.0)
+    roll_kp: float = param(0.5, 'roll levelling: differential leg length per rad of roll '
+                           '[m/rad] (0: no levelling)', 0.0, 5.0)
+    roll_ki: float = param(2.0, 'roll levelling: integral gain [m/(rad s)]', 0.0, 20.0)
+    roll_kd: float = param(0.1, 'roll levelling: roll-rate gain [m s/rad] (damps the roll '
+                           'swing after a drop; 0 left a limit cycle of +-25 deg off a 0.15 m '
+                           'ramp in MuJoCo)', 0.0, 2.0)
+    max_roll_dl: float = param(0.2, 'roll levelling: largest differential leg length [m]',
+                               0.0, 0.33)
+    homing: str = param('set_zero', 'how the hip angles are known before the first arm: '
+                        'set_zero (the motors were zeroed in the documented pose, offsets '
+                        'hold its angles) | hard_stops (driven gently to their stops)',
+                        read_only=RO, choices=HOMING_METHODS)
+    stop_angles: List[float] = param([-0.2, -0.2, -0.2, -0.2], "joint angle of each hip's "
+                                     'hard stop [rad] (homing: hard_stops)', -3.2, 3.2,
+                                     read_only=RO, length=4)
+    homing_speed: float = param(0.3, 'joint speed of the homing ramp [rad/s]', 0.05, 2.0,
+                                read_only=RO)
+    homing_torque: float = param(3.0, 'torque towards the stop that says a hip is there '
+                                 '[N m]', 0.5, 10.0, read_only=RO)
+    joint_names: List[str] = param(['left_leg_front_joint', 'left_leg_rear_joint',
+                                    'right_leg_front_joint', 'right_leg_rear_joint'],
+                                   "joint_states names of the four hips (the URDF's)",
+                                   read_only=RO, length=4)
+    knee_names: List[str] = param(['left_front_knee', 'left_rear_knee', 'right_front_knee',
+                                   'right_rear_knee'], 'joint_states names of the four passive '
+                                  "knees (the URDF's), from the five-bar kinematics",
+                                  read_only=RO, length=4)
+    mit: MitLimits = section(MitLimits, 'mit')
+
+    def problems(self) -> List[str]:
+        """Check that the four hips have different IDs."""
+        if self.driven and len(set(self.motor_ids)) != 4:
+            return ['legs.motor_ids needs four different CAN IDs']
+        return []
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    """The control loop's period and real-time options (docs/benchmarks.md)."""
+
+    control_period: float = param(0.002, 'control period T_s [s] (the paper: 2 ms)', 0.0005,
+                                  0.02, read_only=RO)
+    realtime_priority: int = param(0, 'SCHED_FIFO priority of the control thread (0: leave the '
+                                   'scheduler alone; needs rtprio rights)', 0, 98, read_only=RO)
+    realtime_cpu: int = param(-1, 'CPU the control thread is pinned to (-1: no pinning)', -1,
+                              1023, read_only=RO)
+    lock_memory: bool = param(False, 'lock the process in RAM (mlockall, MCL_ONFAULT) so no '
+                              'page fault stalls the loop; needs CAP_IPC_LOCK or a memlock '
+                              'limit', read_only=RO)
+    clock_source: str = param('wall', "what paces the control loop: 'wall' (the robot: every "
+                              "control_period on CLOCK_MONOTONIC) or 'imu_stamp' (a simulator "
+                              'in lockstep, sim_node lockstep: one tick per IMU sample, its '
+                              'header stamp the time of every timeout; never on a robot)',
+                              choices=CLOCK_SOURCES, read_only=RO)
+
+
+@dataclass(frozen=True)
+class PublishConfig:
+    """What balance_node publishes, how often, in which frames."""
+
+    state_publish_rate: float = param(100.0, 'rate of ~/state [Hz] (decimated from the control '
+                                      'loop; 0: off)', 0.0, 1000.0, read_only=RO)
+    odom_publish_rate: float = param(50.0, 'rate of odom [Hz] (0: off)', 0.0, 1000.0,
+                                     read_only=RO)
+    diagnostics_rate: float = param(1.0, 'rate of /diagnostics [Hz]; a mode change publishes '
+                                    'at once', 0.1, 10.0, read_only=RO)
+    odom_frame_id: str = param('odom', 'frame of the odometry pose', read_only=RO)
+    footprint_frame_id: str = param('base_footprint', 'frame on the floor under the wheel axle: '
+                                    "the child of the odometry (its pose is the footprint's)",
+                                    read_only=RO)
+    base_frame_id: str = param('base_link', 'the body frame (pitched and raised over '
+                               'base_footprint)', read_only=RO)
+    enable_odom_tf: bool = param(True, 'publish odom -> base_footprint on /tf (false: another '
+                                 'node does, e.g. a localization filter); base_footprint -> '
+                                 'base_link is always published', read_only=RO)
+    pose_covariance_diagonal: List[float] = param(
+        [0.001, 0.001, 1.0e6, 1.0e6, 1.0e6, 0.01], 'odom pose covariance diagonal (x, y, z, '
+        'roll, pitch, yaw)', 0.0, 1e12, read_only=RO, length=6)
+    twist_covariance_diagonal: List[float] = param(
+        [0.001, 0.001, 1.0e6, 1.0e6, 1.0e6, 0.01], 'odom twist covariance diagonal (x, y, z, '
+        'roll, pitch, yaw)', 0.0, 1e12, read_only=RO, length=6)
+
+
+@dataclass(frozen=True)
+class BalanceConfig:
+    """Everything balance_node is configured with (see the module docstring)."""
+
+    model: RobotParams = section(RobotParams)
+    imu: ImuConfig = section(ImuConfig)
+    control: ControlConfig = section(ControlConfig)
+    ida_pbc: IdaPbcGains = section(IdaPbcGains, 'ida_pbc')
+    output_regulation: OutputRegulationConfig = section(OutputRegulationConfig,
+                                                        'output_regulation')
+    joints: JointsConfig = section(JointsConfig)
+    leg: LegGeometry = section(LegGeometry, 'leg')
+    safety: SafetyConfig = section(SafetyConfig)
+    reference: ReferenceConfig = section(ReferenceConfig, 'reference')
+    can: CanConfig = section(CanConfig, 'can')
+    wheel_state: WheelStateConfig = section(WheelStateConfig)
+    legs: LegsConfig = section(LegsConfig, 'legs')
+    loop: LoopConfig = section(LoopConfig)
+    publish: PublishConfig = section(PublishConfig)
+
+    def problems(self) -> List[str]:
+        """Rules across sections."""
+        out = []
+        m = self.model
+        if m.height_min < m.height_max and not m.height_min <= self.control.height \
+                <= m.height_max:
+            out.append('height %.3f m outside height_min..height_max (%.3f..%.3f m)'
+                       % (self.control.height, m.height_min, m.height_max))
+        if self.can.protocol == 'mit' and self.safety.max_wheel_torque > self.can.mit.t_max:
+            out.append('max_wheel_torque %.2f N m above the motor limit can.mit.t_max %.2f N m'
+                       % (self.safety.max_wheel_torque, self.can.mit.t_max))
+        if self.wheel_state.wheel_state_source == 'can' and self.can.protocol != 'mit':
+            out.append('wheel_state_source can needs can.protocol mit (wheel speeds from MIT '
+                       'replies); use joint_states with %s' % self.can.protocol)
+        if self.legs.driven:
+            if set(self.legs.motor_ids) & {self.can.left_motor_id, self.can.right_motor_id} \
+                    and not self.legs.channel:
+                out.append('legs.motor_ids share a CAN ID with a wheel motor on one bus')
+            if any(self.joints.leg_names):
+                out.append('hip joint names (left_leg_front_joint ...) are for legs that '
+                           'another driver reports; with legs.motor_ids the hips are ours')
+        return out
+
+
+#: The defaults, for code that needs one value (e.g. the fall angle of a test plant).
+DEFAULTS = BalanceConfig()
+
+#: Safety parameters that can only be tightened while the robot balances: name -> +1 where a
+#: larger value is looser, -1 where a smaller one is.
+TIGHTEN_ONLY = {
+    'imu_timeout': 1, 'joint_state_timeout': 1, 'motor_timeout': 1, 'cmd_vel_timeout': 1,
+    'fall_angle': 1, 'fall_roll_angle': 1, 'max_wheel_torque': 1, 'max_wheel_velocity': 1,
+    'max_pitch_rate': 1, 'stamp_tolerance': 1, 'reference.max_velocity': 1,
+    'reference.max_acceleration': 1, 'reference.max_yaw_rate': 1,
+    'reference.max_yaw_acceleration': 1, 'lift_window': 1, 'lift_min_dv': 1, 'lift_ratio': 1,
+    'lift_free_time': 1, 'lift_unloaded_time': 1, 'lift_min_load': -1,
+}
+
+
+def loosening(cfg: BalanceConfig, changes) -> List[str]:
+    """Return why ``changes`` {name: value} loosen a TIGHTEN_ONLY parameter of ``cfg``."""
+    old = to_flat(cfg)
+    out = []
+    for name, value in changes.items():
+        sign = TIGHTEN_ONLY.get(name)
+        if sign is None or not isinstance(value, (int, float)) or isinstance(value, bool):
+            continue
+        if not sign * (value - old[name]) <= 0.0:   # looser, or NaN
+            out.append('%s can only be tightened while the robot balances (%r -> %r)'
+                       % (name, old[name], value))
+    return out

@@ -1,0 +1,504 @@
+r"""
+The legs: height command, roll levelling, hip impedance commands, homing, damping (pure).
+
+The four hip (body) motors are MIT-mode motors (core/protocols/mit.py) driving two five-bar
+legs (core/kinematics.py). Order everywhere: left front, left rear, right front, right rear.
+A hip motor's position p [rad] maps to the leg's joint angle q (FiveBarLeg convention) as
+
+    q = direction p + offset          (direction +1 or -1; offset: q at the motor's zero)
+
+and torques and speeds through the direction alone.
+
+Per tick the pieces are (docs/legs.md has the figures):
+
+- ``HeightShaper``: the commanded height l* [m], clamped to [height_min, height_max], rate- and
+  acceleration-limited; NaN or infinite commands are refused (the last good one stays);
+- ``RollLeveller``: a PID on the body roll [rad] giving the differential leg length
+  dl = l_left - l_right [m] (roll > 0 is left side up, REP 103, so dl < 0 shortens the left
+  leg); ``split_heights`` turns (l, dl) into the two legs' heights within the legs' range;
+- ``LegController.commands``: per hip an impedance command (p, v, kp, kd, tau_ff): p from the
+  five-bar inverse kinematics of each leg's height, v from the height rate through the leg
+  Jacobian, tau_ff the static torque J^T f that carries the body's weight share f = m g / 2 per
+  leg (rotated into the body frame by the pitch), all mapped into each motor's frame;
+- ``LegController.state``: from the four hip replies the joint angles, each leg's height l
+  (FiveBarLeg.forward), their mean, l_dot and the passive knee angles; a reply that is missing
+  or out of the five-bar's reach makes the state invalid with a reason (never an exception);
+- ``LegController.damping_commands``: kp = 0, kd > 0 (and optionally part of the weight's
+  static torque while the state is valid): the body sinks slowly instead of dropping, for a
+  disarm or a fault;
+- ``HipHoming``: a hip motor knows its output angle after power-up only modulo one rotor turn
+  through its gear (40 deg for 9:1; sim/motor_emulator.py reboot). Homing drives each hip at a
+  low speed towards its hard stop with a soft position ramp (low kp), detects the stop (speed
+  about zero while the torque towards the stop has grown past a threshold) and records the
+  offset that makes the reading the stop's known angle. ``LegController.home_known_pose`` is
+  the other way: the legs are known to be at given angles (after the motors' set-zero in a
+  documented pose, or held in a jig). Arming is refused until one of the two has run.
+"""
+from dataclasses import dataclass
+import math
+from typing import List, NamedTuple, Optional, Sequence, Tuple
+
+from .kinematics import FiveBarLeg
+from .protocols.mit import MitCommand
+from .rate_limiter import limit_rate
+
+#: Hip order of every 4-sequence here.
+HIP_NAMES = ('left_front', 'left_rear', 'right_front', 'right_rear')
+#: A reply as the legs need it: (position [rad], velocity [rad/s], torque [N m]), motor frame.
+Reply = Optional[Tuple[float, float, float]]
+
+
+def _finite(x: float) -> bool:
+    return isinstance(x, (int, float)) and math.isfinite(x)
+
+
+# ---- height command ------------------------------------------------------------------------
+
+
+class HeightShaper:
+    """
+    Shapes the commanded height l* [m] into a reference l_ref with its rate l_dot_ref [m/s].
+
+    The target is clamped to [height_min, height_max]; the reference moves towards it at most
+    at max_rate [m/s] and changes its rate at most by max_accel [m/s^2] (a trapezoidal profile
+    that brakes in time: the rate is also bounded by sqrt(2 max_accel distance)).
+    """
+
+    def __init__(self, height_min: float = 0.37, height_max: float = 0.70,
+                 max_rate: float = 0.1, max_accel: float = 0.2):
+        if not (height_min < height_max and max_rate > 0.0 and max_accel > 0.0):
+            raise ValueError('need height_min < height_max, max_rate > 0, max_accel > 0')
+        self.height_min = float(height_min)
+        self.height_max = float(height_max)
+        self.max_rate = float(max_rate)
+        self.max_accel = float(max_accel)
+        self.target = self.height_min
+        self.l_ref = self.height_min
+        self.l_dot_ref = 0.0
+        self.refused = 0          # commands refused (NaN, inf, not a number)
+        self.clamped = False      # the last accepted command was out of range
+
+    def reset(self, l: float) -> None:
+        """Start at height l [m] at rest (e.g. the measured height on arm), target l clamped."""
+        if _finite(l):
+            self.l_ref = float(l)
+        self.l_dot_ref = 0.0
+        self.target = min(max(self.l_ref, self.height_min), self.height_max)
+
+    def command(self, l: float) -> bool:
+        """Take a new commanded height l* [m]; False if refused (not finite)."""
+        if not _finite(l):
+            self.refused += 1
+            return False
+        target = min(max(float(l), self.height_min), self.height_max)
+        self.clamped = target != l
+        self.target = target
+        return True
+
+    def step(self, dt: float) -> Tuple[float, float]:
+        """Advance dt [s]; return (l_ref [m], l_dot_ref [m/s])."""
+        if not (_finite(dt) and dt > 0.0):
+            return self.l_ref, self.l_dot_ref
+        error = self.target - self.l_ref
+        # The fastest rate from which steps of max_accel dt still stop at the target:
+        # v^2 / (2 a) + v dt / 2 = |error|.
+        a = self.max_accel
+        brake = a * (math.sqrt(0.25 * dt * dt + 2.0 * abs(error) / a) - 0.5 * dt)
+        wanted = math.copysign(min(self.max_rate, brake), error)
+        rate = limit_rate(wanted, self.l_dot_ref, a, dt)
+        l_next = self.l_ref + rate * dt
+        if (self.target - l_next) * error <= 0.0 and abs(rate) <= a * dt:
+            l_next, rate = self.target, 0.0   # arrived: no creeping around the target
+        self.l_ref, self.l_dot_ref = l_next, rate
+        return self.l_ref, self.l_dot_ref
+
+
+# ---- roll levelling ------------------------------------------------------------------------
+
+
+class RollLeveller:
+    """
+    Differential leg length dl = l_left - l_right [m] that levels the body's roll.
+
+    dl = -(kp roll + ki integral(roll) + kd roll_rate), limited to +-max_dl; the integral stops
+    growing while the output is at its limit (anti-windup). Gains: kp [m/rad], ki [m/(rad s)],
+    kd [m s/rad]. A body roll phi needs about dl = d_w tan(phi) (0.47 m per rad for d_w =
+    0.47 m). Non-finite inputs hold the last output.
+    """
+
+    def __init__(self, kp: float = 0.5, ki: float = 2.0, kd: float = 0.0,
+                 max_dl: float = 0.2):
+        if min(kp, ki, kd) < 0.0 or not max_dl >= 0.0:
+            raise ValueError('levelling gains and max_dl must be >= 0')
+        self.kp, self.ki, self.kd, self.max_dl = float(kp), float(ki), float(kd), float(max_dl)
+        self.reset()
+
+    def reset(self) -> None:
+        """Start level: no integral, no output."""
+        self.integral = 0.0
+        self.dl = 0.0
+
+    def update(self, roll: float, roll_rate: float, dt: float) -> float:
+        """Advance dt [s] with the body roll [rad] and roll rate [rad/s]; return dl [m]."""
+        if not (_finite(roll) and _finite(roll_rate) and _finite(dt) and dt > 0.0):
+            return self.dl
+        integral = self.integral + roll * dt
+        raw = -(self.kp * roll + self.ki * integral + self.kd * roll_rate)
+        dl = min(max(raw, -self.max_dl), self.max_dl)
+        if dl == raw or (raw > dl) == (roll > 0.0):   # unsaturated, or unwinding
+            self.integral = integral
+        self.dl = dl
+        return dl
+
+
+def split_heights(l: float, dl: float, lo: float, hi: float) -> Tuple[float, float]:
+    """
+    (l_left, l_right) [m] = l +- dl / 2, both within the legs' range [lo, hi].
+
+    Levelling comes first: dl is limited to the range's width, then the mean l moves as far as
+    needed to fit both legs (on a slope at the lowest height the body rises by |dl| / 2).
+    """
+    dl = min(max(dl, lo - hi), hi - lo)
+    half = 0.5 * abs(dl)
+    l = min(max(l, lo + half), hi - half)
+    return l + 0.5 * dl, l - 0.5 * dl
+
+
+# ---- motors and state ----------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class HipMotors:
+    """
+    The four hip motors (HIP_NAMES order): CAN IDs, directions (+1 or -1), offsets [rad].
+
+    q = direction p + offset maps a motor position p to the FiveBarLeg joint angle q.
+    """
+
+    motor_ids: Tuple[int, int, int, int] = (3, 4, 5, 6)
+    directions: Tuple[int, int, int, int] = (1, 1, 1, 1)
+    offsets: Tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+
+    def __post_init__(self):
+        """Check the four entries of each field."""
+        if not (len(self.motor_ids) == len(self.directions) == len(self.offsets) == 4):
+            raise ValueError('four hip motors: motor_ids, directions, offsets of 4 entries')
+        if any(d not in (1, -1) for d in self.directions):
+            raise ValueError('hip directions must be 1 or -1')
+        if len(set(self.motor_ids)) != 4:
+            raise ValueError('the hip motors need four different CAN IDs')
+        if not all(_finite(o) for o in self.offsets):
+            raise ValueError('hip offsets must be finite')
+
+    def joint_angle(self, i: int, p: float) -> float:
+        """Return the joint angle q [rad] of hip i for a motor position p [rad]."""
+        return self.directions[i] * p + self.offsets[i]
+
+    def motor_position(self, i: int, q: float) -> float:
+        """Return the motor position p [rad] of hip i for a joint angle q [rad]."""
+        return self.directions[i] * (q - self.offsets[i])
+
+
+@dataclass(frozen=True)
+class LegGains:
+    """
+    Impedance gains of each hip (motor frame): kp [N m/rad], kd [N m s/rad].
+
+    damping_kd: kd of the damping mode [N m s/rad]; damping_gravity: the share (0..1) of the
+    weight's static torque kept in the damping mode while the leg state is valid (0: pure
+    damping, the body sinks at about f / (kd sum (dq/dl)^2), docs/legs.md).
+    """
+
+    kp: float = 60.0
+    kd: float = 3.0
+    damping_kd: float = 5.0
+    damping_gravity: float = 0.6
+
+    def __post_init__(self):
+        """Check the ranges."""
+        if min(self.kp, self.kd, self.damping_kd) < 0.0 or not self.damping_kd > 0.0:
+            raise ValueError('leg gains must be >= 0 and damping_kd > 0')
+        if not 0.0 <= self.damping_gravity <= 1.0:
+            raise ValueError('damping_gravity must be in [0, 1]')
+
+
+class LegState(NamedTuple):
+    """
+    The legs from the four hip replies.
+
+    q, q_dot: joint angles [rad] and rates [rad/s] (HIP_NAMES order, nan where no reply);
+    heights: (l_left, l_right) [m] (nan for a leg out of reach); l: their mean [m] (nan unless
+    both are valid); l_dot: mean height rate [m/s]; knees: passive knee angles [rad] (left
+    front, left rear, right front, right rear; FiveBarLeg.knee_angles); valid: both legs
+    measured and in reach; problems: why not, one text per problem.
+    """
+
+    q: Tuple[float, ...]
+    q_dot: Tuple[float, ...]
+    heights: Tuple[float, float]
+    l: float
+    l_dot: float
+    knees: Tuple[float, ...]
+    valid: bool
+    problems: Tuple[str, ...]
+
+
+class LegController:
+    """
+    Hip motor commands from leg heights, and leg state from hip replies (see module docstring).
+
+    leg: the five-bar geometry; motors: the hip motors (their offsets are replaced by homing);
+    gains: LegGains; weight_share: the force each leg carries [N] (body mass g / 2).
+    """
+
+    def __init__(self, leg: Optional[FiveBarLeg] = None, motors: HipMotors = HipMotors(),
+                 gains: LegGains = LegGains(), weight_share: float = 11.0 * 9.81 / 2.0):
+        self.leg = leg if leg is not None else FiveBarLeg()
+        self.motors = motors
+        self.gains = gains
+        self.weight_share = float(weight_share)
+        self.homed = False
+        lo, hi = self.leg.height(self.leg.q_min, self.leg.q_min), \
+            self.leg.height(self.leg.q_max, self.leg.q_max)
+        #: The height range [m] the legs can be commanded to (their reach, symmetric stance).
+        self.reach = (lo, hi)
+
+    # ---- homing -----------------------------------------------------------------------------
+
+    def set_offsets(self, offsets: Sequence[float]) -> None:
+        """Use these offsets [rad] (q = direction p + offset) and count the legs as homed."""
+        m = self.motors
+        self.motors = HipMotors(m.motor_ids, m.directions, tuple(float(o) for o in offsets))
+        self.homed = True
+
+    def home_known_pose(self, replies: Sequence[Reply], q_known: Sequence[float]) -> bool:
+        """
+        Home from a known pose: the hips are at joint angles q_known [rad] now.
+
+        For a set-zero in a documented pose (the motors read 0 there: offset = q_known) or a
+        jig. False (nothing changes) if a reply is missing or not finite.
+        """
+        if len(replies) != 4 or len(q_known) != 4:
+            return False
+        offsets = []
+        for i, (r, q) in enumerate(zip(replies, q_known)):
+            if r is None or not (_finite(r[0]) and _finite(q)):
+                return False
+            offsets.append(q - self.motors.directions[i] * r[0])
+        self.set_offsets(offsets)
+        return True
+
+    def arm_refusal(self, state: Optional[LegState]) -> Optional[str]:
+        """Return why the legs cannot be armed (None when they can)."""
+        if not self.homed:
+            return 'legs not homed'
+        if state is None or not state.valid:
+            return 'leg state invalid: ' + ('; '.join(state.problems) if state else 'no replies')
+        return None
+
+    # ---- state ------------------------------------------------------------------------------
+
+    def state(self, replies: Sequence[Reply]) -> LegState:
+        """Return the LegState from the four hip replies (None for a missing one); never raises."""
+        m, leg = self.motors, self.leg
+        q, q_dot, problems = [], [], []
+        for i in range(4):
+            r = replies[i] if i < len(replies) else None
+            if r is None or not (_finite(r[0]) and _finite(r[1])):
+                q.append(math.nan)
+                q_dot.append(math.nan)
+                problems.append('no reply from hip %s' % HIP_NAMES[i])
+                continue
+            q.append(m.joint_angle(i, r[0]))
+            q_dot.append(m.directions[i] * r[1])
+        heights, rates, knees = [], [], []
+        for side, name in ((0, 'left'), (2, 'right')):
+            qf, qr = q[side], q[side + 1]
+            l = leg.height(qf, qr) if qf == qf and qr == qr else math.nan
+            if l != l and qf == qf and qr == qr:
+                problems.append('%s leg out of reach (q = %.3f, %.3f rad)' % (name, qf, qr))
+            heights.append(l)
+            rates.append(leg.height_rate(qf, qr, q_dot[side], q_dot[side + 1]))
+            knees.extend(leg.knee_angles(qf, qr))
+        valid = not problems
+        l_mean = 0.5 * (heights[0] + heights[1]) if valid else math.nan
+        l_dot = 0.5 * (rates[0] + rates[1]) if valid else math.nan
+        return LegState(tuple(q), tuple(q_dot), (heights[0], heights[1]), l_mean, l_dot,
+                        tuple(knees), valid, tuple(problems))
+
+    # ---- commands ---------------------------------------------------------------------------
+
+    def commands(self, l_left: float, l_right: float, l_dot_left: float = 0.0,
+                 l_dot_right: float = 0.0, pitch: float = 0.0,
+                 load: float = 1.0) -> List[MitCommand]:
+        """
+        Impedance commands of the four hips for the legs' heights [m] and rates [m/s].
+
+        Heights are clamped to the legs' reach; pitch [rad] (theta, forward lean positive)
+        turns the weight share into the body frame: f_l = f cos(theta), f_x = f sin(theta).
+        load: the share of the body's weight the legs carry (1 balancing; less resting on the
+        tail, which carries the rest). A non-finite input falls back to the damping mode for
+        that leg.
+        """
+        g, m = self.gains, self.motors
+        f = self.weight_share * load
+        theta = pitch if _finite(pitch) else 0.0
+        f_l, f_x = f * math.cos(theta), f * math.sin(theta)
+        out: List[MitCommand] = []
+        for side, l, l_dot in ((0, l_left, l_dot_left), (2, l_right, l_dot_right)):
+            if not (_finite(l) and _finite(l_dot)):
+                out.extend(self._damping(side))
+                continue
+            l = min(max(l, self.reach[0]), self.reach[1])
+            q = self.leg.inverse(l)
+            rates = self.leg.hip_rates(q[0], q[1], l_dot)
+            tau = self.leg.static_torques(q[0], q[1], f_l, f_x)
+            if not all(_finite(v) for v in q + rates + tau):
+                out.extend(self._damping(side))
+                continue
+            for k in (0, 1):
+                i, d = side + k, m.directions[side + k]
+                out.append(MitCommand(m.motor_ids[i], m.motor_position(i, q[k]), d * rates[k],
+                                      g.kp, g.kd, d * tau[k]))
+        return out
+
+    def damping_commands(self, state: Optional[LegState] = None,
+                         load: float = 1.0) -> List[MitCommand]:
+        """
+        Damping mode of the four hips: kp = 0, kd = damping_kd, v = 0.
+
+        With a valid state, tau_ff keeps damping_gravity of the weight's static torque at the
+        measured pose, so the body sinks slower; without one, pure damping. load: the share of
+        the weight on the legs (less when the tail carries the rest: a full share would push
+        the legs out).
+        """
+        out: List[MitCommand] = []
+        for side in (0, 2):
+            out.extend(self._damping(side, state, load))
+        return out
+
+    def _damping(self, side: int, state: Optional[LegState] = None,
+                 load: float = 1.0) -> List[MitCommand]:
+        g, m = self.gains, self.motors
+        tau = (0.0, 0.0)
+        if state is not None and state.valid and g.damping_gravity > 0.0:
+            ff = self.leg.static_torques(state.q[side], state.q[side + 1],
+                                         g.damping_gravity * load * self.weight_share)
+            if all(_finite(v) for v in ff):
+                tau = ff
+        return [MitCommand(m.motor_ids[side + k], 0.0, 0.0, 0.0, g.damping_kd,
+                           m.directions[side + k] * tau[k]) for k in (0, 1)]
+
+
+# ---- homing at the hard stops --------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class HomingConfig:
+    """
+    Homing at the hard stops.
+
+    stop_angles: the joint angle [rad] of each hip's stop (FiveBarLeg convention; default: the
+    lower joint limit -0.2 rad, legs folded, where the body's weight helps); toward: -1 to
+    reach the stops by decreasing q, +1 by increasing it; speed: joint speed of the ramp
+    [rad/s]; kp [N m/rad], kd [N m s/rad]: the soft ramp's gains; torque_threshold: torque
+    towards the stop [N m] and speed_threshold [rad/s] below which, for dwell [s], a hip is at
+    its stop; max_torque: the ramp never leads the hip by more than this torque's worth [N m];
+    timeout [s]: homing fails if not done by then.
+    """
+
+    stop_angles: Tuple[float, float, float, float] = (-0.2, -0.2, -0.2, -0.2)
+    toward: int = -1
+    speed: float = 0.3
+    kp: float = 30.0
+    kd: float = 1.0
+    torque_threshold: float = 3.0
+    speed_threshold: float = 0.05
+    dwell: float = 0.1
+    max_torque: float = 6.0
+    timeout: float = 20.0
+
+    def __post_init__(self):
+        """Check the ranges."""
+        if self.toward not in (1, -1) or len(self.stop_angles) != 4:
+            raise ValueError('toward must be 1 or -1, stop_angles four angles')
+        if not (self.speed > 0.0 and self.kp > 0.0 and self.kd >= 0.0
+                and 0.0 < self.torque_threshold < self.max_torque
+                and self.speed_threshold > 0.0 and self.dwell >= 0.0 and self.timeout > 0.0):
+            raise ValueError('homing: speed, kp > 0; 0 < torque_threshold < max_torque; ...')
+
+
+class HipHoming:
+    """
+    Drives the four hips to their hard stops and measures their offsets (see HomingConfig).
+
+    Call step(replies, now) every tick with the hips' replies (position, velocity, torque in
+    the motor frame; None where none came) and send the commands it returns. ``status`` is
+    'running', 'done' (then ``offsets`` holds the four offsets for LegController.set_offsets)
+    or 'failed' (``reason`` says why). The motors must be in motor mode.
+    """
+
+    def __init__(self, motors: HipMotors, config: HomingConfig = HomingConfig()):
+        self.motors = motors
+        self.config = config
+        self.status = 'running'
+        self.reason = ''
+        self.offsets: Optional[Tuple[float, ...]] = None
+        self._start: Optional[float] = None
+        self._ref: List[Optional[float]] = [None] * 4     # ramp position, motor frame [rad]
+        self._stopped_since: List[Optional[float]] = [None] * 4
+        self._at_stop: List[Optional[float]] = [None] * 4  # motor position at the stop [rad]
+        self._last: Optional[float] = None
+
+    def step(self, replies: Sequence[Reply], now: float) -> List[MitCommand]:
+        """Advance the homing to time now [s]; return the four hips' commands."""
+        c, m = self.config, self.motors
+        if self._start is None:
+            self._start = now
+        dt = 0.0 if self._last is None else max(0.0, now - self._last)
+        self._last = now
+        if self.status == 'running' and now - self._start > c.timeout:
+            self.status, self.reason = 'failed', 'timeout after %.1f s' % c.timeout
+        out = []
+        for i in range(4):
+            d = m.directions[i]
+            r = replies[i] if i < len(replies) else None
+            ok = r is not None and all(_finite(v) for v in r)
+            if self.status != 'running' or self._at_stop[i] is not None:
+                hold = self._at_stop[i] if self._at_stop[i] is not None else self._ref[i]
+                out.append(self._command(i, hold, 0.0))
+                continue
+            if not ok:
+                out.append(self._command(i, self._ref[i], 0.0))
+                continue
+            p, v, tau = r
+            if self._ref[i] is None:
+                self._ref[i] = p
+            # Motor-frame direction towards the stop; the ramp leads the hip by at most
+            # max_torque / kp (a hip that runs ahead, pulled by the weight, is held back).
+            s = d * c.toward
+            ref = self._ref[i] + s * c.speed * dt
+            if s * (ref - p) > c.max_torque / c.kp:
+                ref = p + s * c.max_torque / c.kp
+            self._ref[i] = ref
+            pushing = s * tau >= c.torque_threshold
+            if pushing and abs(v) < c.speed_threshold:
+                since = self._stopped_since[i]
+                if since is None:
+                    self._stopped_since[i] = now
+                elif now - since >= c.dwell:
+                    self._at_stop[i] = p
+            else:
+                self._stopped_since[i] = None
+            out.append(self._command(i, self._ref[i], s * c.speed))
+        if self.status == 'running' and all(a is not None for a in self._at_stop):
+            self.offsets = tuple(c.stop_angles[i] - m.directions[i] * self._at_stop[i]
+                                 for i in range(4))
+            self.status = 'done'
+        return out
+
+    def _command(self, i: int, p: Optional[float], v: float) -> MitCommand:
+        c = self.config
+        if p is None:   # no reply yet: damping only
+            return MitCommand(self.motors.motor_ids[i], 0.0, 0.0, 0.0, c.kd, 0.0)
+        return MitCommand(self.motors.motor_ids[i], p, v, c.kp, c.kd, 0.0)

@@ -1,0 +1,74 @@
+"""
+Motor health from the replies: temperature, error codes, a reboot (no rclpy, no CAN).
+
+- Temperature (the 8-byte MIT reply's, the DJI C620's): from ``temp_derate`` on, the motor's
+  torque limit falls linearly, to half at ``temp_max``; at ``temp_max`` balancing ends: the
+  sit-down (with the half that is left to brake), or a fault where it cannot run. The two
+  thresholds are per motor model (``can.mit.*`` for the wheels, ``legs.mit.*`` for the hips,
+  ``can.dji.*``): a motor's figures come from its data sheet.
+- Error code (the 8-byte MIT reply's last byte, CubeMars AK firmware): any code but 0 is a
+  fault with the decoded reason (``ERROR_CODES``); the drive has switched its output off.
+- Reboot: a motor that lost power and came back is in rest mode (no torque) and knows its
+  angle only modulo a rotor turn, so its position reading jumps. A reply whose position is off
+  the previous reply's extrapolation by more than ``jump_limit`` (after the wrap of the reply
+  field) is a fault: such a motor is never silently "alive" again.
+"""
+import math
+from typing import Optional
+
+#: Share of the torque limit left at temp_max.
+DERATE_FLOOR = 0.5
+#: MIT reply error codes of CubeMars AK firmware (neurobionics/TMotorCANControl mit_can.py,
+#: ERROR_CODES).
+ERROR_CODES = {
+    1: 'motor over-temperature', 2: 'over-current', 3: 'over-voltage', 4: 'under-voltage',
+    5: 'encoder fault', 6: 'phase current unbalance (hardware damage?)',
+}
+
+
+def error_reason(code: int) -> str:
+    """Return the decoded reason of a motor error code."""
+    return ERROR_CODES.get(int(code), 'unknown error code')
+
+
+def derate(temperature: Optional[float], temp_derate: float, temp_max: float) -> float:
+    """
+    Return the share (0..1) of the torque limit a motor at ``temperature`` [deg C] may use.
+
+    1 below temp_derate (and when the motor reports no temperature), falling linearly to
+    DERATE_FLOOR at temp_max and staying there (what the sit-down brakes with).
+    """
+    if temperature is None or not math.isfinite(temperature) or temperature <= temp_derate:
+        return 1.0
+    if temperature >= temp_max or temp_max <= temp_derate:
+        return DERATE_FLOOR
+    return 1.0 - (1.0 - DERATE_FLOOR) * (temperature - temp_derate) / (temp_max - temp_derate)
+
+
+#: Angular acceleration [rad/s^2] a joint can reach between two replies (a free wheel at 12 N m:
+#: 1600 rad/s^2): what the extrapolation may miss over a late reply, 0.5 A t^2.
+MAX_ACCELERATION = 2000.0
+#: Uncertainty [s] of a reply's time: replies are stamped when a tick reads them, and after a
+#: late tick the replies of up to MAX_CATCH_UP + 1 ticks (12 ms) are read at once; at speed v
+#: that alone moves the extrapolation by v times this (a falling robot's wheels at 40 rad/s
+#: read as a 0.4 rad jump on a loaded host).
+RECEIPT_JITTER = 0.012
+
+
+def position_jump(p_prev: float, v_prev: float, t_prev: float, p: float, v: float, t: float,
+                  span: float) -> float:
+    """
+    Return how far [rad] a position reading is off the previous one's extrapolation.
+
+    The reply field wraps every ``span`` [rad] (p_max - p_min; inf: it does not), so the
+    difference is taken modulo it. What the joint's acceleration can explain over the gap
+    (MAX_ACCELERATION) and what the speed covers within the replies' receipt-time uncertainty
+    (RECEIPT_JITTER) are not counted: a loaded host's late or bunched replies are no reboot.
+    """
+    gap = t - t_prev
+    predicted = p_prev + 0.5 * (v_prev + v) * gap
+    d = p - predicted
+    if math.isfinite(span) and span > 0.0:
+        d = (d + 0.5 * span) % span - 0.5 * span
+    return max(0.0, abs(d) - 0.5 * MAX_ACCELERATION * gap * gap
+               - 0.5 * abs(v_prev + v) * RECEIPT_JITTER)

@@ -1,0 +1,130 @@
+"""
+The robot's CAN motors as the tick sees them: IDs, mounting directions, replies (no python-can).
+
+``MotorSet`` maps joint-convention torques (forward positive for a wheel) to the protocol's
+frames through each motor's ID and direction, and turns the replies that arrive into per-motor
+status: the time of the last reply, a reply counter and the last decoded feedback, whose
+position, velocity and torque it hands back in the joint's convention. Everything the safety
+supervisor needs to judge a motor's liveness comes from here.
+"""
+import math
+from typing import Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
+
+from .actuation import check_direction
+from .motor_health import position_jump
+from .protocols.base import Frame, MotorFeedback, MotorProtocol
+
+
+class Motor:
+    """One motor: name, CAN ID, direction (+1/-1) and what its replies said."""
+
+    __slots__ = ('name', 'motor_id', 'direction', 'last_reply', 'replies', 'feedback',
+                 'rebooted', 'error')
+
+    def __init__(self, name: str, motor_id: int, direction: int):
+        self.name = name
+        self.motor_id = int(motor_id)
+        self.direction = check_direction(direction)
+        self.last_reply: Optional[float] = None   # monotonic [s]
+        self.replies = 0
+        self.feedback: Optional[MotorFeedback] = None
+        #: Why the motor counts as rebooted (a position jump), None while it does not.
+        self.rebooted: Optional[str] = None
+        #: The newest non-zero error code a reply carried since the tick read it (0: none), so
+        #: that a clean reply after it within one tick does not hide it.
+        self.error = 0
+
+    def velocity(self) -> float:
+        """Last reported velocity in the joint's convention [rad/s] (NaN: no reply yet)."""
+        fb = self.feedback
+        return float('nan') if fb is None else self.direction * fb.velocity
+
+    def position(self) -> float:
+        """Last reported position in the joint's convention [rad] (NaN: no reply yet)."""
+        fb = self.feedback
+        return float('nan') if fb is None else self.direction * fb.position
+
+    def torque(self) -> float:
+        """Last reported torque in the joint's convention [N m] (NaN: no reply yet)."""
+        fb = self.feedback
+        return float('nan') if fb is None else self.direction * fb.torque
+
+
+class MotorSet:
+    """
+    A group of motors on one bus behind one protocol.
+
+    motors: (name, CAN ID, direction) per motor. ``reply_times`` ({motor ID: monotonic time of
+    the last reply or None}) is what the safety supervisor reads each tick.
+    """
+
+    def __init__(self, protocol: MotorProtocol, motors: Sequence[Tuple[str, int, int]]):
+        self.protocol = protocol
+        self.motors = [Motor(name, i, d) for name, i, d in motors]
+        ids = [m.motor_id for m in self.motors]
+        if len(set(ids)) != len(ids):
+            raise ValueError('motor IDs must differ: %s' % ids)
+        self.by_name: Dict[str, Motor] = {m.name: m for m in self.motors}
+        self.by_id: Dict[int, Motor] = {m.motor_id: m for m in self.motors}
+        self.ids: Tuple[int, ...] = tuple(ids)
+        self.reply_times: Dict[int, Optional[float]] = dict.fromkeys(ids)
+        self.rx_replies = 0
+        #: Reboot check: a reply position off the last one's extrapolation by more than
+        #: jump_limit [rad], modulo the reply field's span [rad] (inf: no check); not judged
+        #: while a speed reading is beyond speed_limit [rad/s] (near the end of its field, where
+        #: it saturates or wraps: the extrapolation would be wrong).
+        self.jump_limit = math.inf
+        self.span = math.inf
+        self.speed_limit = math.inf
+
+    def on_frame(self, t: float, frame: Frame) -> Optional[Motor]:
+        """Take a received frame at monotonic time ``t`` [s]; return the motor that replied."""
+        motor = self.by_id.get(self.protocol.reply_motor_id(frame))
+        if motor is None:
+            return None  # not a reply, or another motor set's (or a stranger's) on the bus
+        feedback = self.protocol.decode_feedback(frame)
+        if feedback is None:
+            return None
+        prev = motor.feedback
+        if prev is not None and motor.rebooted is None and self.jump_limit < math.inf \
+                and abs(prev.velocity) < self.speed_limit \
+                and abs(feedback.velocity) < self.speed_limit:
+            jump = position_jump(prev.position, prev.velocity, motor.last_reply,
+                                 feedback.position, feedback.velocity, t, self.span)
+            if jump > self.jump_limit:
+                motor.rebooted = ('position jumped by %.2f rad (jump limit %.2f rad): rebooted? '
+                                  'its angle is known only modulo a rotor turn'
+                                  % (jump, self.jump_limit))
+        motor.last_reply = t
+        motor.replies += 1
+        motor.feedback = feedback
+        if feedback.error:
+            motor.error = feedback.error
+        self.reply_times[motor.motor_id] = t
+        self.rx_replies += 1
+        return motor
+
+    def torque_frames(self, torques: Mapping[str, float]) -> List[Frame]:
+        """Frames commanding {motor name: joint torque [N m]} (directions applied here)."""
+        by_name = self.by_name
+        return self.protocol.torque_frames({
+            by_name[name].motor_id: by_name[name].direction * tau
+            for name, tau in torques.items()})
+
+    def zero_torque_frames(self, names: Optional[Iterable[str]] = None) -> List[Frame]:
+        """Zero-torque commands, staying in motor mode (all motors by default)."""
+        return self.protocol.zero_torque_frames(self._ids(names))
+
+    def enable_frames(self, names: Optional[Iterable[str]] = None) -> List[Frame]:
+        """Enter motor mode."""
+        return self.protocol.enable_frames(self._ids(names))
+
+    def stop_frames(self, names: Optional[Iterable[str]] = None) -> List[Frame]:
+        """Zero torque, then exit motor mode (disarm, start-up, shutdown)."""
+        ids = self._ids(names)
+        return self.protocol.zero_torque_frames(ids) + self.protocol.disable_frames(ids)
+
+    def _ids(self, names: Optional[Iterable[str]]) -> Tuple[int, ...]:
+        if names is None:
+            return self.ids
+        return tuple(self.by_name[n].motor_id for n in names)

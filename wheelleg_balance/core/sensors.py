@@ -1,0 +1,185 @@
+"""
+The tick's sensor inputs as plain numbers, and what each sample says (no rclpy).
+
+The ROS side reduces a message to a small tuple once, on receipt (the shape crosses a process
+boundary cheaply: nodes/control_link.py); the readers here turn those tuples into the
+measurements the tick uses:
+
+- ``ImuSample`` (sensor_msgs/Imu): orientation, its validity, angular velocity, linear
+  acceleration, header stamp and receipt time. ``ImuReader`` drops a sample that repeats the
+  previous header stamp (a driver republishing one reading: it must go stale, not look fresh)
+  and gives theta~ and the roll from the whole orientation (or from gravity where the
+  orientation is missing), rotated by the IMU's mounting, and theta_dot (core/attitude.py).
+- ``JointSample`` (sensor_msgs/JointState, already matched by joint name by
+  ``JointStateReader.reduce``): the wheels' velocities, forward positive, and the four hip
+  angles in FiveBarLeg's convention, giving the height l through the five-bar kinematics.
+"""
+import math
+from typing import NamedTuple, Optional, Sequence, Tuple
+
+from .attitude import body_attitude, ImuMounting, pitch_rate
+from .kinematics import FiveBarLeg
+
+NAN = math.nan
+
+
+class ImuSample(NamedTuple):
+    """
+    One IMU message.
+
+    t: monotonic receipt time [s]; stamp_sec, stamp_nanosec: header stamp; qx..qw: orientation
+    of the IMU frame (REP 103); orientation_valid: False when the driver says it has no
+    orientation estimate (orientation_covariance[0] == -1); wx, wy, wz: angular velocity [rad/s]
+    and ax, ay, az: linear acceleration [m/s^2], both in the IMU frame; clock: the receiving
+    node's clock (ROS time) at receipt [s], NaN when not known (the stamp is then not compared
+    with it).
+    """
+
+    t: float
+    stamp_sec: int
+    stamp_nanosec: int
+    qx: float
+    qy: float
+    qz: float
+    qw: float
+    orientation_valid: bool
+    wx: float
+    wy: float
+    wz: float
+    ax: float = 0.0
+    ay: float = 0.0
+    az: float = 0.0
+    clock: float = NAN
+
+
+class ImuReader:
+    """
+    The newest IMU measurement in the body frame (base_link), with its receipt time [s].
+
+    theta: pitch theta~ [rad] (the body's pitch plus the IMU's unknown offset d, which the
+    observer estimates); roll [rad]; both from the whole orientation rotated by the mounting,
+    or from gravity where the orientation is missing (core/attitude.py); theta_dot: the Euler
+    pitch rate [rad/s]; gyro: the body-frame angular velocity (x, y, z) [rad/s]; source:
+    'orientation', 'gravity' or 'none'. ``frozen`` counts samples dropped for repeating the
+    previous header stamp. mounting: ``imu_mounting_rpy`` [rad]. A sample whose stamp runs
+    backwards, or lies ahead of the node's clock by more than ``stamp_tolerance`` [s], is
+    refused (``refused_stamps``, ``refused_reason``): it goes stale instead of being used.
+    """
+
+    def __init__(self, mounting=(0.0, 0.0, 0.0), gravity: float = 9.81,
+                 stamp_tolerance: float = 0.1):
+        self.mounting = ImuMounting(mounting)
+        self.gravity = gravity
+        self.time: Optional[float] = None
+        self.theta = NAN
+        self.roll = NAN
+        self.theta_dot = NAN
+        self.gyro = (NAN, NAN, NAN)
+        self.source = 'none'
+        self.frozen = 0
+        self._stamp: Optional[Tuple[int, int]] = None
+        self.stamp_tolerance = stamp_tolerance
+        self.refused_stamps = 0
+        self.refused_reason = ''
+
+    def take(self, s: ImuSample, forward_acceleration: float = 0.0) -> bool:
+        """
+        Take a sample; return False when it was dropped (a repeated stamp).
+
+        forward_acceleration [m/s^2]: the robot's own, for the gravity fallback.
+        """
+        stamp = (s.stamp_sec, s.stamp_nanosec)
+        if stamp == self._stamp and stamp != (0, 0):
+            # A driver republishing one sample: keep the first receipt time so it goes stale.
+            self.frozen += 1
+            return False
+        if stamp != (0, 0):   # unstamped drivers: receipt time only
+            refused = self._stamp_problem(stamp, s.clock)
+            if refused is not None:
+                self.refused_stamps += 1
+                self.refused_reason = refused
+                return False
+        self._stamp = stamp
+        self.time = s.t
+        att = body_attitude(self.mounting, (s.qx, s.qy, s.qz, s.qw),
+                            0.0 if s.orientation_valid else -1.0, (s.ax, s.ay, s.az),
+                            forward_acceleration, gravity=self.gravity)
+        self.theta, self.roll, self.source = att.pitch, att.roll, att.source
+        self.gyro = self.mounting.vector_to_body((s.wx, s.wy, s.wz))
+        self.theta_dot = pitch_rate(self.gyro[1], self.gyro[2], att.roll) \
+            if att.roll == att.roll else self.gyro[1]
+        return True
+
+    def _stamp_problem(self, stamp: Tuple[int, int], clock: float) -> Optional[str]:
+        """Return why a header stamp is refused (backwards, or ahead of the clock), else None."""
+        if self._stamp is not None and self._stamp != (0, 0) and stamp < self._stamp:
+            return 'IMU stamp ran backwards: %d.%09d after %d.%09d' % (stamp + self._stamp)
+        ahead = stamp[0] + 1e-9 * stamp[1] - clock
+        if ahead > self.stamp_tolerance:   # False for a NaN clock
+            return ('IMU stamp %.3f s ahead of our clock (stamp_tolerance %.3f s)'
+                    % (ahead, self.stamp_tolerance))
+        return None
+
+
+class JointSample(NamedTuple):
+    """
+    What one JointState message says about the joints the tick uses.
+
+    t: monotonic receipt time [s]; has_wheels: the message carries both wheels; w_left,
+    w_right: their velocities relative to the leg, forward positive [rad/s]; has_legs: it
+    carries the four configured hips; l: the body height from them [m] (NaN when out of the
+    legs' reach).
+    """
+
+    t: float
+    has_wheels: bool
+    w_left: float
+    w_right: float
+    has_legs: bool
+    l: float
+
+
+class JointStateReader:
+    """
+    Reduces a JointState message to a JointSample by the configured joint names.
+
+    wheels: (left name, right name); wheel_directions: (+-1, +-1) from the joint's velocity to
+    forward positive; legs: per leg (front name, rear name, front direction, rear direction,
+    front offset, rear offset), empty for no hips (q = offset + direction * position).
+    """
+
+    def __init__(self, wheels: Tuple[str, str], wheel_directions: Tuple[int, int],
+                 legs: Sequence[Tuple[str, str, int, int, float, float]] = (),
+                 leg: Optional[FiveBarLeg] = None):
+        self.wheels = tuple(wheels)
+        self.wheel_directions = tuple(wheel_directions)
+        self.legs = tuple(legs)
+        self.leg = leg or FiveBarLeg()
+
+    def reduce(self, t: float, names: Sequence[str], position: Sequence[float],
+               velocity: Sequence[float]) -> Optional[JointSample]:
+        """Return the sample of one message, or None when it carries none of our joints."""
+        has_wheels = has_legs = False
+        w_l = w_r = l = NAN
+        try:
+            i_l = names.index(self.wheels[0])
+            i_r = names.index(self.wheels[1])
+            w_l = float(self.wheel_directions[0] * velocity[i_l])
+            w_r = float(self.wheel_directions[1] * velocity[i_r])
+            has_wheels = True
+        except (ValueError, IndexError, TypeError):
+            pass  # a message without our wheels (e.g. from another publisher)
+        if self.legs:
+            try:
+                total = 0.0
+                for front, rear, d_f, d_r, o_f, o_r in self.legs:
+                    q_front = o_f + d_f * position[names.index(front)]
+                    q_rear = o_r + d_r * position[names.index(rear)]
+                    total += self.leg.height(q_front, q_rear)
+                l = total / len(self.legs)
+                has_legs = True
+            except (ValueError, IndexError, TypeError):
+                pass
+        if not (has_wheels or has_legs):
+            return None
+        return JointSample(t, has_wheels, w_l, w_r, has_legs, l)

@@ -1,0 +1,380 @@
+"""
+balance_node's control loop: the tick every 2 ms on the CAN bus, in a process without rclpy.
+
+``ControlRunner`` is the loop: a DeadlineLoop (core/deadline.py) that, every period, drains the
+link to the ROS side (nodes/control_link.py: sensor samples, cmd_vel, arm requests, parameter
+changes), polls the CAN bus, runs ``BalanceLoop.tick`` (core/balance_loop.py), sends its frames,
+and sends back the state (at the publication rates), arm replies, log lines and, ten times a
+second or on a mode change, a status for /diagnostics.
+
+balance_node starts it as a child process (``python -m wheelleg_balance.nodes.control_process
+--fd N``), so the executor, the parameter and service machinery and DDS discovery share no
+interpreter with the tick; tests that hand the node an in-process python-can bus run the same
+runner in a thread. The child ends with zero torque and exit-motor-mode frames when told to
+(STOP), when the ROS side goes away (end-of-file on the link: the parent died, even by
+SIGKILL; the kernel also sends it SIGTERM then: PR_SET_PDEATHSIG) and on SIGINT, SIGTERM,
+SIGHUP or SIGQUIT. The sensor samples come from the sensor intake process over a socket pair
+of their own (nodes/sensor_intake.py).
+
+With ``clock_source: imu_stamp`` (a simulator in lockstep: sim_node's ``lockstep``) the loop is
+paced by the simulated sensor instead of the wall clock: one tick per IMU sample, at the
+sample's header stamp, and every receipt time of that tick (samples, CAN replies, commands) is
+that stamp, so every timeout runs on simulated time. sim_node steps its physics once it has the
+frames of the tick, so the closed loop is the same on an idle machine and on a loaded one,
+only slower (docs/simulation.md). Never on a robot: a silent IMU would stop the clock.
+"""
+import argparse
+from array import array
+import gc
+import signal
+import sys
+import time
+from typing import Optional
+
+from . import control_link as L
+from .can_io import CanIo, open_bus
+from .sensor_intake import die_with_parent
+from ..core import realtime
+from ..core.balance_loop import BalanceLoop, TickInputs
+from ..core.can_budget import BusLoad, max_catch_up
+from ..core.config import BalanceConfig
+from ..core.deadline import DeadlineLoop, TIMING_WINDOW, window_stats
+from ..core.safety import Mode
+from ..core.schema import from_flat
+
+#: Missed deadlines served late, back to back, before a stall is skipped. Catching up keeps the
+#: rate at 500 Hz and the observer's 2 ms time base (it is discretized per update); a longer
+#: stall is skipped rather than answered by a long burst of frames.
+MAX_CATCH_UP = 5
+#: Period of the status messages for /diagnostics [s] (a mode change sends one at once).
+STATUS_PERIOD = 0.1
+#: With clock_source imu_stamp: how long the loop waits for a sample before it serves the link
+#: alone (commands, the intake's readiness, a status for /diagnostics) [s, wall clock].
+IDLE_WAKE = 0.02
+#: Flags of a STATE message: which topics the ROS side publishes from it.
+PUBLISH_STATE = 1
+PUBLISH_ODOM = 2
+
+
+def decimation(rate: float, period: float) -> int:
+    """Ticks between publications at ``rate`` [Hz]; 0 = never."""
+    return 0 if rate <= 0.0 else max(1, int(round(1.0 / (rate * period))))
+
+
+class ControlRunner:
+    """The control loop around a BalanceLoop (see the module docstring)."""
+
+    def __init__(self, cfg: BalanceConfig, bus, link: L.Link,
+                 sensor_link: Optional[L.Link] = None, realtime_options: bool = True,
+                 leg_bus=None):
+        """
+        Build the runner.
+
+        bus: the wheels' python-can bus (and the hips', unless leg_bus is given); link: to
+        balance_node's ROS side (commands in; state, status, replies out); sensor_link: from
+        the sensor intake (nodes/sensor_intake.py), None when the samples come over ``link``.
+        """
+        self.cfg = cfg
+        self.loop = BalanceLoop(cfg)
+        self.on_stamps = cfg.loop.clock_source == 'imu_stamp'
+        #: The time of the newest tick [s]: CLOCK_MONOTONIC, or the IMU's stamp (on_stamps).
+        self.now = 0.0
+        #: Ticks run so far (the timer's count is the wall-clock loop's only).
+        self.ticks = 0
+        #: on_stamps: samples whose stamp did not advance the clock (no tick ran on them).
+        self.stamps_not_advancing = 0
+        clock = (lambda: self.now) if self.on_stamps else time.monotonic
+        self.can = CanIo(bus, cfg.can.send_timeout, clock)
+        self.leg_can = CanIo(leg_bus, cfg.can.send_timeout, clock) \
+            if leg_bus is not None else None
+        self.link = link
+        self.sensor_link = sensor_link
+        self.timer = DeadlineLoop(cfg.loop.control_period,
+                                  max_catch_up=self.catch_up_limit(cfg, leg_bus is not None),
+                                  on_stall=self._on_stall, on_error=self._on_error)
+        self._load = BusLoad(cfg.can.bitrate)
+        self._leg_load = BusLoad(cfg.can.bitrate)
+        self.inputs = TickInputs()
+        #: BalanceLoop.tick's own time [s] per tick (the ring of the timer's compute times holds
+        #: the whole tick: the link, the bus I/O and the tick), to tell the two apart.
+        self._core_times = array('d', [0.0] * TIMING_WINDOW)
+        self._arm_ids = []
+        self._state_every = decimation(cfg.publish.state_publish_rate, self.timer.period)
+        self._odom_every = decimation(cfg.publish.odom_publish_rate, self.timer.period)
+        self._realtime_options = realtime_options
+        self.realtime = ''
+        self._status_due = 0.0
+        self._last_mode: Optional[Mode] = None
+        self._shut_down = False
+        self.intake_ready = sensor_link is None
+
+    @staticmethod
+    def catch_up_limit(cfg: BalanceConfig, legs_own_bus: bool) -> int:
+        """Return the ticks a catch-up may serve: MAX_CATCH_UP, fewer with a short TX queue."""
+        per_tick = 2 if cfg.can.protocol == 'mit' else 1   # DJI: one frame for both wheels
+        if cfg.legs.driven and not legs_own_bus:
+            per_tick += 4
+        return max_catch_up(cfg.can.tx_queue_len, per_tick, MAX_CATCH_UP)
+
+    # ------------------------------------------------------------------------- lifecycle
+
+    def run(self) -> None:
+        """Run until stopped; always end with zero torque and the motors out of motor mode."""
+        try:
+            # Start from a known state: a crashed run may have left the motors in motor mode.
+            self.loop.report_send(time.monotonic(), self._send(*self.loop.stop_frames()))
+            if self._realtime_options:
+                self._apply_realtime()
+            gc.collect()
+            gc.freeze()  # a full collection of the start-up objects took 30 ms (15 ticks)
+            self.link.send_object(L.READY, 'control loop %.1f ms, %s' % (
+                1e3 * self.timer.period, self.realtime or 'no real-time options'))
+            if self.on_stamps:
+                self._run_on_stamps()
+            else:
+                self.timer.run(self._tick)
+        finally:
+            self.shutdown()
+
+    def stop(self) -> None:
+        """End the loop after the tick in progress (any thread, a signal handler)."""
+        self.timer.stop()
+
+    def shutdown(self) -> None:
+        """Zero torque, exit motor mode, close the bus (idempotent)."""
+        self.timer.stop()
+        if self._shut_down:
+            return
+        self._shut_down = True
+        self._send(*self.loop.stop_frames())
+        self.can.close()
+        if self.leg_can is not None:
+            self.leg_can.close()
+
+    def _send(self, frames, leg_frames) -> Optional[str]:
+        """Send the wheels' frames, then the hips' (on their own bus if they have one)."""
+        error = self.can.send(frames)
+        if leg_frames:
+            leg_error = (self.leg_can or self.can).send(leg_frames)
+            error = error or leg_error
+        return error
+
+    def _apply_realtime(self) -> None:
+        lc = self.cfg.loop
+        results = {'thread_name': realtime.name_thread('balance_control')}
+        cpus = () if lc.realtime_cpu < 0 else (lc.realtime_cpu,)
+        results.update(realtime.apply(lc.realtime_priority, cpus, lc.lock_memory))
+        self.realtime = '; '.join(message for _, message in results.values())
+        for name in ('priority', 'affinity', 'memory_lock'):
+            ok, message = results[name]
+            if not ok:
+                self.link.send_object(L.EVENT, ('warn', 'real-time option refused: %s'
+                                                % message))
+
+    # ------------------------------------------------------------------------------ tick
+
+    def _drain_link(self) -> None:
+        inputs = self.inputs
+        sensors = self.sensor_link
+        if sensors is not None:
+            for tag, payload in sensors.receive():
+                if tag == L.IMU:
+                    inputs.imu.append(payload)
+                elif tag == L.JOINTS:
+                    inputs.joints.append(payload)
+                elif tag == L.READY:
+                    self.intake_ready = True
+                    self.link.send_object(L.EVENT, ('info', '%s ready' % payload))
+        for tag, payload in self.link.receive():
+            if tag == L.IMU:
+                inputs.imu.append(payload)
+            elif tag == L.JOINTS:
+                inputs.joints.append(payload)
+            elif tag == L.CMD_VEL:
+                inputs.cmd_vel = payload
+            elif tag == L.CMD_HEIGHT:
+                inputs.cmd_height = payload
+            elif tag == L.ESTOP:
+                inputs.estop = True
+            elif tag == L.ARM:
+                request_id, arm = payload
+                self._arm_ids.append(request_id)
+                inputs.arm = bool(arm)
+            elif tag == L.PARAMS:
+                inputs.params = {**inputs.params, **payload}
+            elif tag == L.STOP:
+                self.timer.stop()
+        if self.link.closed:
+            self.timer.stop()  # the ROS side is gone: end with zero torque
+
+    def _run_on_stamps(self) -> None:
+        """Tick at the stamp of each newest IMU sample (clock_source imu_stamp)."""
+        link = self.sensor_link if self.sensor_link is not None else self.link
+        status_due = time.monotonic()
+        while not self.timer.stopped:
+            link.wait_readable(IDLE_WAKE)
+            self._drain_link()
+            inputs = self.inputs
+            if not inputs.imu:
+                if time.monotonic() >= status_due:   # no sample yet: still say how it goes
+                    status_due = time.monotonic() + STATUS_PERIOD
+                    self.link.send_object(L.STATUS, self.status(self.now))
+                continue
+            newest = inputs.imu[-1]
+            now = newest.stamp_sec + 1e-9 * newest.stamp_nanosec
+            if now <= self.now:
+                self.stamps_not_advancing += 1   # a repeated or older stamp: time stands
+                inputs.imu.clear()
+                continue
+            # Every receipt time of this tick is its stamp: the timeouts run on sim time.
+            inputs.imu[:] = [s._replace(t=s.stamp_sec + 1e-9 * s.stamp_nanosec)
+                             for s in inputs.imu]
+            inputs.joints[:] = [s._replace(t=now) for s in inputs.joints]
+            if inputs.cmd_vel is not None:
+                inputs.cmd_vel = inputs.cmd_vel._replace(t=now)
+            if inputs.cmd_height is not None:
+                inputs.cmd_height = inputs.cmd_height._replace(t=now)
+            try:
+                self._step(now)
+            except Exception as exc:  # noqa: B902 -- as DeadlineLoop: the loop lives on
+                self._on_error(int(now * 1e9), exc)
+
+    def _tick(self, now_ns: int) -> None:
+        self._drain_link()
+        self._step(now_ns * 1e-9)
+
+    def _step(self, now: float) -> None:
+        """One tick at ``now`` [s] on what the link brought: CAN in, BalanceLoop, CAN out."""
+        self.now = now
+        inputs = self.inputs
+        self.can.poll(inputs.frames)
+        if self.leg_can is not None:
+            self.leg_can.poll(inputs.frames)
+        try:
+            t0 = time.perf_counter()
+            result = self.loop.tick(now, inputs)
+            self._core_times[self.ticks % TIMING_WINDOW] = time.perf_counter() - t0
+            self.ticks += 1
+            self.loop.report_send(now, self._send(result.frames, result.leg_frames))
+        finally:
+            inputs.clear()
+        self._answer_arm(result.arm_reply)
+        for event in result.events:
+            self.link.send_object(L.EVENT, event)
+        self._send_state(result, now)
+        mode = self.loop.mode
+        if now >= self._status_due or mode is not self._last_mode:
+            self._last_mode = mode
+            self._status_due = now + STATUS_PERIOD
+            self.link.send_object(L.STATUS, self.status(now))
+
+    def _answer_arm(self, reply) -> None:
+        if reply is None or not self._arm_ids:
+            return
+        *superseded, last = self._arm_ids
+        self._arm_ids = []
+        for request_id in superseded:
+            self.link.send_object(L.ARM_REPLY, (request_id, False, 'superseded by a later '
+                                                'request'))
+        self.link.send_object(L.ARM_REPLY, (last, reply[0], reply[1]))
+
+    def _send_state(self, result, now: float) -> None:
+        n = self.ticks - 1
+        flags = 0
+        if self._state_every and n % self._state_every == 0:
+            flags |= PUBLISH_STATE
+        if self._odom_every and n % self._odom_every == 0:
+            flags |= PUBLISH_ODOM
+        if flags:
+            o = result.odom
+            self.link.send_state(result.state.values() + [o.x, o.y, o.yaw, o.x_dot,
+                                                          o.yaw_rate, now, flags])
+        if flags & PUBLISH_STATE:
+            pos, vel, eff = self.loop.joint_values(now)
+            self.link.send_joint_values(pos + vel + eff)
+
+    def _on_stall(self, lateness: float) -> None:
+        self.link.send_object(L.EVENT, ('warn', 'control loop: a tick came %.1f ms late'
+                                        % (1e3 * lateness)))
+
+    def _on_error(self, now_ns: int, exc: BaseException) -> None:
+        """Take a bug in the tick: FAULT (zero torque), reported; the loop lives on."""
+        self._answer_arm(self.loop.report_internal_error(now_ns * 1e-9, repr(exc)))
+        self.link.send_object(L.EVENT, ('error', 'control tick failed: %r' % (exc,)))
+
+    def status(self, now: float) -> dict:
+        """Return the loop's status, its timing and the bus counters (for /diagnostics)."""
+        out = self.loop.status(now)
+        out['timing'] = self.timer.stats()
+        if self.on_stamps:   # no wall-clock deadlines: the ticks run on the IMU's stamps
+            out['timing']['ticks'] = self.ticks
+            out['timing']['stamps_not_advancing'] = self.stamps_not_advancing
+        out['clock_source'] = self.cfg.loop.clock_source
+        n = min(self.ticks, TIMING_WINDOW)
+        out['timing'].update(window_stats('core', self._core_times[:n]))
+        out['period_target'] = self.timer.period
+        out['can'] = self.can.counters()
+        out['can']['load_pct'] = self._load.update(now, out['can']['bits'])
+        if self.leg_can is not None:
+            out['leg_can'] = self.leg_can.counters()
+            out['leg_can']['load_pct'] = self._leg_load.update(now, out['leg_can']['bits'])
+        out['max_catch_up'] = self.timer.max_catch_up
+        out['link_dropped'] = self.link.dropped
+        out['realtime'] = self.realtime
+        out['intake_ready'] = self.intake_ready
+        out['time'] = now
+        return out
+
+
+def _stop_on_signals(runner: ControlRunner) -> None:
+    def handler(signum, frame):
+        runner.stop()
+    for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT):
+        signal.signal(signum, handler)
+
+
+def main(argv=None) -> int:
+    """Run the control loop of the balance_node that started this process."""
+    parser = argparse.ArgumentParser(description='balance_node control loop (started by '
+                                     'balance_node, not by hand)')
+    parser.add_argument('--fd', type=int, required=True, help='inherited link socket')
+    parser.add_argument('--sensor-fd', type=int, help='inherited socket of the sensor intake')
+    args = parser.parse_args(argv)
+    die_with_parent()
+    link = L.Link.from_fd(args.fd)
+    sensor_link = None if args.sensor_fd is None else L.Link.from_fd(args.sensor_fd)
+    params = None
+    deadline = time.monotonic() + 30.0
+    while params is None and time.monotonic() < deadline and not link.closed:
+        link.wait_readable(0.5)
+        for tag, payload in link.receive(1):
+            if tag == L.PARAMS:
+                params = payload
+    if params is None:
+        print('control_process: no configuration from balance_node', file=sys.stderr)
+        return 1
+    cfg = from_flat(BalanceConfig, params)
+    try:
+        bus = open_bus(cfg.can.interface, cfg.can.channel, cfg.can.udp_port)
+    except Exception as exc:  # noqa: B902 -- one clear line to the ROS side, then exit
+        link.send_object(L.EVENT, ('error', 'cannot open CAN bus %s:%s: %s' % (
+            cfg.can.interface, cfg.can.channel, exc)))
+        return 2
+    leg_bus = None
+    if cfg.legs.driven and cfg.legs.channel and cfg.legs.channel != cfg.can.channel:
+        try:
+            leg_bus = open_bus(cfg.can.interface, cfg.legs.channel, cfg.can.udp_port)
+        except Exception as exc:  # noqa: B902 -- one clear line to the ROS side, then exit
+            link.send_object(L.EVENT, ('error', "cannot open the legs' CAN bus %s:%s: %s" % (
+                cfg.can.interface, cfg.legs.channel, exc)))
+            bus.shutdown()
+            return 2
+    runner = ControlRunner(cfg, bus, link, sensor_link, leg_bus=leg_bus)
+    _stop_on_signals(runner)
+    runner.run()
+    link.close()
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,225 @@
+"""
+sim_node's configuration: every parameter once, with its default, meaning, unit and range.
+
+``SimConfig`` is a tree of sections (core/schema.py), as balance_node's ``BalanceConfig``: the
+node declares its parameters with descriptors from it (nodes/params.load), config/sim.yaml is
+checked against it by the tests, and the simulated robot and its motors are built from it. The
+prefixes give the ROS names of docs/simulation.md (``can.mit.t_max``, ``legs.motor_ids``,
+``slope.angle``, ``fault.miswired_motor_id``). Every parameter is read-only: the scenario is set
+at start. The MIT ranges are balance_node's section (core/config.MitLimits), so both sides
+build their codec the same way (``mit_protocol``); the firmware options beside them are the
+emulator's (sim/motor_emulator.py). No MuJoCo here: a configuration is checked without it.
+"""
+from dataclasses import dataclass
+import math
+from typing import List
+
+from .layout import HIP_TORQUE_LIMIT, LEG_JOINTS, WHEEL_TORQUE_LIMIT
+from .motor_emulator import TIMEOUT_ACTIONS
+from ..core.config import MitLimits
+from ..core.protocols.mit import MitProtocol
+from ..core.schema import param, section
+
+RO = True
+#: Values of ``initial_pose`` (RobotSim.reset).
+INITIAL_POSES = ('folded', 'tail', 'pitch', 'stand')
+
+
+def _direction(default: int, description: str):
+    # An integer range -1..1 with step 2 admits exactly -1 and +1.
+    return param(default, description, -1, 1, read_only=RO, step=2)
+
+
+@dataclass(frozen=True)
+class SlopeConfig:
+    """A ramp under one wheel (paper experiment 8)."""
+
+    enabled: bool = param(False, 'put a ramp under one wheel (paper experiment 8)',
+                          read_only=RO)
+    start_x: float = param(1.0, 'x where the ramp leaves the floor [m]', -100.0, 100.0,
+                           read_only=RO)
+    length: float = param(1.2, 'ramp length [m]', 0.1, 10.0, read_only=RO)
+    angle: float = param(math.radians(7.0), 'ramp angle [rad]', 0.0, 0.5, read_only=RO)
+    side: str = param('left', 'wheel track of the ramp', read_only=RO,
+                      choices=('left', 'right'))
+
+
+@dataclass(frozen=True)
+class MitFirmwareConfig:
+    """The MIT motors' firmware options (all motors; sim/motor_emulator.MitMotorEmulator)."""
+
+    wrap: bool = param(True, 'reply fields beyond their range wrap around, as the bgkatz and '
+                       'CubeMars firmware send them; false: clamped', read_only=RO)
+    command_timeout: float = param(0.0, 'all motors: no command for this long in motor mode '
+                                   'fires the timeout [s] (0: none)', 0.0, 10.0, read_only=RO)
+    timeout_action: str = param('zero', "what a timeout does: 'zero' (the command is zeroed, "
+                                "as bgkatz CAN_TIMEOUT) or 'rest' (rest mode)", read_only=RO,
+                                choices=TIMEOUT_ACTIONS)
+    reply_temperature: bool = param(False, 'all motors: 8-byte replies with temperature and '
+                                    'error code (newer CubeMars firmware)', read_only=RO)
+
+
+@dataclass(frozen=True)
+class SimCanConfig:
+    """The wheel motors' bus, IDs and directions (the motors answer like the robot's)."""
+
+    interface: str = param('virtual', 'python-can interface: virtual (one process), '
+                           'udp_multicast (between processes) or socketcan', read_only=RO)
+    channel: str = param('wheelleg_sim', 'python-can channel (udp_multicast: the group)',
+                         read_only=RO)
+    udp_port: int = param(43113, 'UDP port of the udp_multicast interface', 1, 65535,
+                          read_only=RO)
+    protocol: str = param('mit', 'motor protocol; only mit is simulated', read_only=RO,
+                          choices=('mit',))
+    left_motor_id: int = param(1, 'CAN ID of the left wheel motor', 1, 2047, read_only=RO)
+    right_motor_id: int = param(2, 'CAN ID of the right wheel motor', 1, 2047, read_only=RO)
+    left_direction: int = _direction(1, '+1 when a positive torque of the left motor drives '
+                                     'the wheel forward, else -1')
+    right_direction: int = _direction(-1, '+1 when a positive torque of the right motor '
+                                      'drives the wheel forward, else -1')
+    master_id: int = param(0, 'standard ID the motors reply on', 0, 2047, read_only=RO)
+    mit: MitLimits = section(MitLimits, 'mit')
+    firmware: MitFirmwareConfig = section(MitFirmwareConfig, 'mit')
+
+
+@dataclass(frozen=True)
+class LegsConfig:
+    """The four hip motors (MIT, on CAN): left front, left rear, right front, right rear."""
+
+    motor_ids: List[int] = param([3, 4, 5, 6], 'CAN IDs of the hip motors: left front, left '
+                                 'rear, right front, right rear', 1, 2047, read_only=RO,
+                                 length=4)
+    directions: List[int] = param([1, 1, 1, 1], 'per hip motor: +1 when a positive motor '
+                                  'position is a positive FiveBarLeg joint angle, else -1', -1,
+                                  1, read_only=RO, length=4)
+    offsets: List[float] = param([0.0, 0.0, 0.0, 0.0], 'per hip motor: the joint angle [rad] '
+                                 'at which it reads zero (q = direction p + offset)', -math.tau,
+                                 math.tau, read_only=RO, length=4)
+    can_channel: str = param('', "channel of a second CAN bus for the hip motors ('' = the "
+                             "wheels' bus; same interface and udp_port)", read_only=RO,
+                             name='legs.can.channel')
+    gear_ratio: float = param(9.0, 'hip motor gear ratio (what one rotor turn is at the '
+                              'output: 2 pi / ratio)', 1.0, 100.0, read_only=RO)
+    power_up: bool = param(True, 'hip motors start as after a power-up: the reading is known '
+                           'only modulo one rotor turn (homing needed); false: exact',
+                           read_only=RO)
+    mit: MitLimits = section(MitLimits, 'mit')
+
+
+@dataclass(frozen=True)
+class FaultConfig:
+    """Faults the simulated robot can be built with (bring-up checks)."""
+
+    miswired_motor_id: int = param(0, 'the motor(s) with this CAN ID turn the other way than '
+                                   'configured (bring-up check); 0: none', 0, 2047,
+                                   read_only=RO)
+
+
+@dataclass(frozen=True)
+class HandConfig:
+    """The builder's hand of the bring-up checks (sim/hand.py; the ``~/hand`` topic)."""
+
+    kp: float = param(20.0, "the hand's stiffness [N m/rad]", 0.1, 1000.0, read_only=RO)
+    kd: float = param(1.0, "the hand's damping [N m s/rad]", 0.0, 100.0, read_only=RO)
+    max_torque: float = param(6.0, 'the most the hand pushes a joint with [N m]', 0.1, 50.0,
+                              read_only=RO)
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Everything sim_node is configured with (see the module docstring)."""
+
+    publish_rate: float = param(500.0, 'loop and imu/joint_states rate [Hz]', 10.0, 2000.0,
+                                read_only=RO)
+    publish_joint_states: bool = param(False, 'publish joint_states of the six motor joints '
+                                       '(off: as on the robot, where nothing publishes them; '
+                                       'balance_node publishes its own from the replies)',
+                                       read_only=RO)
+    ground_truth_rate: float = param(100.0, '~/ground_truth rate [Hz] (0: off)', 0.0, 1000.0,
+                                     read_only=RO)
+    lockstep: bool = param(False, 'step the physics once the motors in motor mode have their '
+                           "commands of the tick (balance_node with clock_source 'imu_stamp'), "
+                           'never faster than real time; imu stamped with the simulated time. '
+                           'The closed loop is then the same on a loaded machine, only slower',
+                           read_only=RO)
+    lockstep_timeout: float = param(0.5, 'lockstep: the longest wait for the commands of a '
+                                    'tick [s, wall clock]; then the physics steps without them '
+                                    '(counted)', 0.001, 10.0, read_only=RO)
+    imu_frame_id: str = param('imu_link', 'frame_id of imu', read_only=RO)
+    imu_pitch_offset: float = param(math.radians(2.2), 'IMU pitch mounting offset d [rad]: the '
+                                    'IMU reads theta + d (the paper: ~2.2 deg)', -0.5, 0.5,
+                                    read_only=RO)
+    initial_pose: str = param('folded', "'folded': as after power-up, hips limp, legs folded "
+                              "onto their stops, resting on the tail; 'tail': resting on the "
+                              'tail with the legs at height (as if the hips held them); '
+                              "'pitch': wheels on the floor, body at initial_pitch, legs at "
+                              "height (falls unless balanced at once); 'stand': on the bring-up "
+                              'stand, body held at the tail pitch stand_lift above the floor, '
+                              'wheels free, hips limp', read_only=RO, choices=INITIAL_POSES)
+    stand_lift: float = param(0.05, 'initial_pose stand: how far the stand lifts the body above '
+                              'its tail rest [m] (the wheels hang free)', 0.01, 0.5,
+                              read_only=RO)
+    initial_pitch: float = param(0.0, 'body pitch for initial_pose pitch [rad]', -1.5, 1.5,
+                                 read_only=RO)
+    height: float = param(0.37, "body height l [m] of the poses 'tail' and 'pitch'", 0.37,
+                          0.70, read_only=RO)
+    pushes: List[float] = param([], 'flat [start, duration, force_x, force_y, ...]: pushes on '
+                                'the body [s, s, N, N] in world axes; empty: none',
+                                read_only=RO, item=float)
+    bumps: List[float] = param([], 'x positions of bumps across the floor [m]; empty: none',
+                               read_only=RO, item=float)
+    bump_height: float = param(0.02, 'height of the bumps [m]', 0.001, 0.1, read_only=RO)
+    slope: SlopeConfig = section(SlopeConfig, 'slope')
+    left_wheel_joint: str = param('left_wheel_joint', 'joint_states name of the left wheel',
+                                  read_only=RO)
+    right_wheel_joint: str = param('right_wheel_joint', 'joint_states name of the right '
+                                   'wheel', read_only=RO)
+    leg_joints: List[str] = param(list(LEG_JOINTS), 'joint_states names of the hips: left '
+                                  'front, left rear, right front, right rear', read_only=RO,
+                                  length=4)
+    can: SimCanConfig = section(SimCanConfig, 'can')
+    legs: LegsConfig = section(LegsConfig, 'legs')
+    fault: FaultConfig = section(FaultConfig, 'fault')
+    hand: HandConfig = section(HandConfig, 'hand')
+
+    @property
+    def second_bus(self) -> bool:
+        """Return True when the hip motors are on a bus of their own."""
+        return self.legs.can_channel not in ('', self.can.channel)
+
+    @property
+    def channels(self) -> List[str]:
+        """Return the CAN channels: the wheels', then the hips' if they have their own."""
+        return [self.can.channel] + ([self.legs.can_channel] if self.second_bus else [])
+
+    @property
+    def motor_ids(self) -> List[int]:
+        """Return the CAN IDs of the motors: the wheels', then the hips'."""
+        return [self.can.left_motor_id, self.can.right_motor_id] + list(self.legs.motor_ids)
+
+    def problems(self) -> List[str]:
+        """Rules across sections."""
+        out = []
+        if any(d not in (1, -1) for d in self.legs.directions):
+            out.append('legs.directions entries must be 1 or -1')
+        ids = self.motor_ids
+        # Motors on one bus need different IDs; on two buses, per bus.
+        groups = [ids[:2], ids[2:]] if self.second_bus else [ids]
+        if any(len(set(g)) != len(g) for g in groups):
+            out.append('the motors on a bus need different CAN IDs: %s' % ids)
+        miswired = self.fault.miswired_motor_id
+        if miswired and miswired not in ids:
+            out.append('fault.miswired_motor_id %d is none of the motors %s' % (miswired, ids))
+        if len(self.pushes) % 4:
+            out.append('pushes needs groups of 4 [start, duration, force_x, force_y]')
+        for name, mit, limit in (('can.mit', self.can.mit, WHEEL_TORQUE_LIMIT),
+                                 ('legs.mit', self.legs.mit, HIP_TORQUE_LIMIT)):
+            if mit.t_max > limit:
+                out.append("%s.t_max %.1f N m above the model's actuators (%.0f N m)"
+                           % (name, mit.t_max, limit))
+        return out
+
+
+def mit_protocol(limits: MitLimits, master_id: int = 0) -> MitProtocol:
+    """Return the MIT codec of a motor model's ranges, replies on ``master_id``."""
+    return MitProtocol(**limits.codec_ranges(), master_id=master_id)

@@ -1,0 +1,309 @@
+"""
+The motors' firmware, emulated (pure Python: frames are core/protocols/base.Frame; no MuJoCo).
+
+The one emulator of the motors that balance_node drives: the simulated robot (sim/robot_motors.py,
+sim_node), the fault suite, the benchmark and the node tests answer CAN frames through it.
+``MitMotorEmulator`` is one MIT motor; ``MitMotorBank`` a set of them without a simulator (each
+joint held at an angle and speed the caller sets), what the fault suite, the benchmark and the
+node tests put on their buses; ``DjiC620Emulator`` the other protocol's ESCs (at the end).
+
+The MIT motor follows
+bgkatz/motorcontrol, the mini-cheetah motor firmware whose MIT mode CubeMars AK motors speak
+(file references below are to that repository; docs/simulation.md has the table):
+
+- power-up in rest mode: no torque. ``FF..FC`` enters motor mode with an empty command (zero
+  torque until the first command), ``FF..FD`` goes back to rest, ``FF..FE`` makes the present
+  position the zero, in rest mode only (Core/Src/fsm.c handles ZERO_CMD in MENU_MODE and ignores
+  it in MOTOR_MODE);
+- in motor mode: tau = kp (p - q) + kd (v - q_dot) + tau_ff, clamped to +-torque_limit, where q,
+  q_dot are the motor's own output-shaft angle and speed; the caller evaluates it at every
+  physics step, as the firmware runs it at every commutation cycle;
+- one reply per frame addressed to the motor (special frames included), carrying the state at
+  that moment (Core/Src/stm32f4xx_it.c packs a reply for every received frame): 6 bytes, or 8
+  with temperature and error code (newer CubeMars firmware). The firmware packs it before it
+  acts on the frame, so its torque field lags one frame; here it shows the torque of the frame
+  just received (what the host asked for, the sooner the better for a simulation);
+- a reply field beyond its range wraps around (core/protocols/mit.py float_to_uint_wrapping:
+  bgkatz's float_to_uint does not clamp and pack_reply keeps the low 16 bits; CubeMars AK
+  firmware wraps as well, as neurobionics/TMotorCANControl observed and corrects on the host).
+  ``wrap=False`` clamps instead (firmware that saturates; neither of the two does);
+- an optional command timeout: no command for ``command_timeout`` s in motor mode zeroes the
+  command (``timeout_action='zero'``: kp = kd = tau_ff = 0, still in motor mode, as fsm.c does
+  with CAN_TIMEOUT), or goes to rest mode (``'rest'``, firmware that disables on timeout);
+- a settable temperature and error code (both reported in 8-byte replies); while the error code
+  is not 0 the output is off, as the drive's protection does;
+- ``reboot``: rest mode, command gone, and the position known only modulo one rotor turn: the
+  encoder sits on the rotor, so after power-up the multi-turn count restarts and the output
+  angle reads (rotor angle from the stored zero, in (-3 pi / 2, pi / 2]) / gear_ratio, the
+  window of Core/Src/position_sensor.c's first sample (2 pi / 9 = 40 deg of output per rotor
+  turn for a 9:1 gear). The stored zero survives the reboot (CubeMars writes it to flash);
+- ``miswired``: the motor turns the other way than it is configured to (a bring-up fault);
+  ``reply_id``: its replies carry this ID instead of its own (a fault injection: no firmware
+  does that, but a host must not take such a reply for the motor's).
+
+Conventions: q, q_dot, and the torque returned are the *joint's* (the physics side); the
+motor's direction (+1 or -1) maps them: motor position = direction q - zero.
+"""
+import math
+from typing import Dict, Iterable, List, Mapping, Optional, Tuple
+
+from ..core.protocols.base import Frame
+from ..core.protocols.dji import (CURRENT_CODE_MAX, CURRENT_MAX, DjiC620Protocol,
+                                  ENCODER_COUNTS)
+from ..core.protocols.mit import MitCommand, MitProtocol
+
+#: Rotor angle window of the first encoder sample after power-up [rad] (position_sensor.c).
+POWER_UP_WINDOW = (-1.5 * math.pi, 0.5 * math.pi)
+TIMEOUT_ACTIONS = ('zero', 'rest')
+
+
+class MitMotorEmulator:
+    """
+    One MIT motor (see the module docstring).
+
+    motor_id: its standard CAN ID; protocol: the MIT ranges it was built with (default
+    MitProtocol(), the AK80-9 class); torque_limit [N m]: what the motor can give (default the
+    protocol's t_max); gear_ratio: rotor turns per output turn (for reboot); direction: +1 or
+    -1, motor shaft relative to the joint; command_timeout [s], 0 = none; timeout_action:
+    'zero' or 'rest'; wrap: reply fields beyond their range wrap (firmware) or clamp;
+    reply_temperature: 8-byte replies with temperature [deg C] and error code.
+    """
+
+    def __init__(self, motor_id: int, protocol: Optional[MitProtocol] = None,
+                 torque_limit: Optional[float] = None, gear_ratio: float = 9.0,
+                 direction: int = 1, command_timeout: float = 0.0,
+                 timeout_action: str = 'zero', wrap: bool = True,
+                 reply_temperature: bool = False, temperature: float = 25.0):
+        if direction not in (1, -1):
+            raise ValueError('direction must be 1 or -1')
+        if timeout_action not in TIMEOUT_ACTIONS:
+            raise ValueError('timeout_action must be one of %s' % ', '.join(TIMEOUT_ACTIONS))
+        if not gear_ratio > 0.0 or not command_timeout >= 0.0:
+            raise ValueError('gear_ratio must be > 0 and command_timeout >= 0')
+        self.motor_id = int(motor_id)
+        self.protocol = protocol if protocol is not None else MitProtocol()
+        self.torque_limit = float(self.protocol.t_max if torque_limit is None else torque_limit)
+        self.gear_ratio = float(gear_ratio)
+        self.direction = int(direction)
+        self.miswired = False
+        self.reply_id: Optional[int] = None   # fault: the ID its replies carry (None: its own)
+        self.command_timeout = float(command_timeout)
+        self.timeout_action = timeout_action
+        self.wrap = bool(wrap)
+        self.reply_temperature = bool(reply_temperature)
+        self.temperature = float(temperature)
+        self.error = 0
+        self.zero = 0.0              # motor position [rad] (direction applied) that reads as 0
+        self.enabled = False         # motor mode
+        self.command: Optional[MitCommand] = None
+        self.motor_torque = 0.0      # torque the motor applies [N m], its own direction
+        self.frames = 0              # frames addressed to it
+        self.timeouts = 0            # times the command timeout fired
+        self.last_decoded = None     # the last frame decoded: 'enter', 'exit', 'zero', MitCommand
+        self._last_command_time = -math.inf
+
+    # ---- the motor's view of the joint ----------------------------------------------------
+
+    @property
+    def effective_direction(self) -> int:
+        """Return the direction the motor really turns (the configured one unless miswired)."""
+        return -self.direction if self.miswired else self.direction
+
+    def position(self, q: float) -> float:
+        """Return the motor's multi-turn output position [rad] for the joint angle q [rad]."""
+        return self.effective_direction * q - self.zero
+
+    def velocity(self, q_dot: float) -> float:
+        """Return the motor's output speed [rad/s] for the joint speed q_dot [rad/s]."""
+        return self.effective_direction * q_dot
+
+    # ---- frames ---------------------------------------------------------------------------
+
+    def handle(self, frame: Frame, q: float, q_dot: float, now: float) -> Optional[Frame]:
+        """
+        Act on a frame as the firmware does and return the reply, or None if not for this motor.
+
+        q [rad], q_dot [rad/s]: the joint's state now; now [s]: the motor's clock (for the
+        command timeout). Frames with another ID or that are not 8-byte standard frames get no
+        reply.
+        """
+        if frame.arbitration_id != self.motor_id:
+            return None
+        decoded = self.protocol.decode_command(frame)
+        if decoded is None:
+            return None
+        self.frames += 1
+        self.last_decoded = decoded
+        if decoded == 'enter':
+            if not self.enabled:
+                self.enabled = True
+                self.command = None      # start from zero torque, not a stale command
+            self._last_command_time = now
+        elif decoded == 'exit':
+            self.enabled = False
+            self.command = None
+        elif decoded == 'zero':
+            if not self.enabled:
+                self.zero = self.effective_direction * q
+        else:
+            self.command = decoded
+            self._last_command_time = now
+        self.torque(q, q_dot, now)
+        return self.protocol.encode_reply(
+            self.motor_id if self.reply_id is None else self.reply_id, self.position(q),
+            self.velocity(q_dot), self.motor_torque,
+            temperature=self.temperature if self.reply_temperature else None,
+            error=self.error, wrap=self.wrap)
+
+    def torque(self, q: float, q_dot: float, now: float) -> float:
+        """
+        Return the joint torque [N m] the motor applies now (zero outside motor mode).
+
+        The impedance law on the motor's own position and speed, clamped to the torque limit,
+        mapped to the joint through the direction. Also applies the command timeout.
+        """
+        cmd = self.command
+        if self.enabled and self.command_timeout > 0.0 \
+                and now - self._last_command_time > self.command_timeout:
+            self.timeouts += 1
+            self._last_command_time = math.inf   # fire once per silence
+            self.command = cmd = None
+            if self.timeout_action == 'rest':
+                self.enabled = False
+        if not self.enabled or cmd is None or self.error:
+            self.motor_torque = 0.0
+            return 0.0
+        tau = (cmd.kp * (cmd.position - self.position(q))
+               + cmd.kd * (cmd.velocity - self.velocity(q_dot)) + cmd.torque)
+        lim = self.torque_limit
+        tau = min(max(tau, -lim), lim) if math.isfinite(tau) else 0.0
+        self.motor_torque = tau
+        return self.effective_direction * tau
+
+    # ---- scenario -------------------------------------------------------------------------
+
+    def reboot(self, q: float) -> None:
+        """
+        Power-cycle at joint angle q [rad]: rest mode, no command, position modulo a rotor turn.
+
+        The reading afterwards is the rotor angle from the stored zero, wrapped into
+        POWER_UP_WINDOW, over the gear ratio; the stored zero itself is kept.
+        """
+        self.enabled = False
+        self.command = None
+        self.motor_torque = 0.0
+        self.error = 0
+        lo, hi = POWER_UP_WINDOW
+        rotor = self.gear_ratio * self.position(q)
+        rotor = hi - (hi - rotor) % (hi - lo)        # into (lo, hi]
+        self.zero = self.effective_direction * q - rotor / self.gear_ratio
+
+    def set_temperature(self, temperature: float) -> None:
+        """Set the temperature [deg C] reported in 8-byte replies."""
+        self.temperature = float(temperature)
+
+    def set_error(self, code: int) -> None:
+        """
+        Set the error code reported in 8-byte replies (0 = none); the output is off until 0.
+
+        CubeMars AK codes (neurobionics/TMotorCANControl mit_can.py ERROR_CODES): 1
+        over-temperature, 2 over-current, 3 over-voltage, 4 under-voltage, 5 encoder fault,
+        6 phase current unbalance.
+        """
+        self.error = int(code) & 0xFF
+
+
+class MitMotorBank:
+    """
+    MIT motors without a simulator: each joint at an angle and speed the caller sets (still).
+
+    What the fault suite, the benchmark and the node tests put on their buses. ``handle``
+    answers a frame as the addressed motor's firmware does (a list: no reply or one);
+    ``torque`` is what a motor applies to its joint now. ids: CAN IDs; directions: {ID: +1 or
+    -1}, motor shaft relative to the joint (default +1); protocol and the other options are
+    MitMotorEmulator's, for every motor. ``silent``: IDs whose replies are lost (the motor
+    still acts on the frames); fault flags of one motor (miswired, reply_id, errors) are on
+    its emulator, ``motor(ID)``.
+    """
+
+    def __init__(self, ids: Iterable[int], directions: Optional[Mapping[int, int]] = None,
+                 protocol: Optional[MitProtocol] = None, **options):
+        directions = directions or {}
+        self.protocol = protocol if protocol is not None else MitProtocol()
+        self.emulators: Dict[int, MitMotorEmulator] = {
+            int(i): MitMotorEmulator(i, self.protocol, direction=directions.get(i, 1),
+                                     **options) for i in ids}
+        self.ids = tuple(self.emulators)
+        #: (q [rad], q_dot [rad/s]) of each motor's joint.
+        self.joints: Dict[int, Tuple[float, float]] = dict.fromkeys(self.ids, (0.0, 0.0))
+        self.silent = set()
+
+    def motor(self, motor_id: int) -> MitMotorEmulator:
+        """Return the emulator of the motor with CAN ID ``motor_id`` (KeyError if none)."""
+        return self.emulators[motor_id]
+
+    def handle(self, frame: Frame, now: float) -> List[Frame]:
+        """Act on a frame as the addressed motor does; return its reply ([] if none is sent)."""
+        e = self.emulators.get(frame.arbitration_id)
+        if e is None or frame.is_extended_id:
+            return []
+        q, q_dot = self.joints[e.motor_id]
+        reply = e.handle(frame, q, q_dot, now)
+        if reply is None or e.motor_id in self.silent:
+            return []
+        return [reply]
+
+    def torque(self, motor_id: int, now: float) -> float:
+        """Return the joint torque [N m] motor ``motor_id`` applies at time ``now`` [s]."""
+        q, q_dot = self.joints[motor_id]
+        return self.emulators[motor_id].torque(q, q_dot, now)
+
+
+class DjiC620Emulator:
+    """
+    DJI C620 ESCs with M3508 P19 motors on one bus (ESC IDs 1..8), answering current commands.
+
+    Each command frame (0x200: ESCs 1-4, 0x1FF: 5-8; core/protocols/dji.py) sets the current of
+    the ESCs it addresses and gets one feedback frame from each of those in ``esc_ids`` (the
+    real ESC sends feedback at 1 kHz on its own; one per command is what a host ticking at 500
+    Hz sees of it, without a clock here). The feedback carries the rotor angle and speed of the
+    motor's output state (``state``: {ESC ID: (position [rad], velocity [rad/s])}, default
+    still), the commanded current as the torque current (the ESC's current loop settled within
+    a tick) and ``temperature`` [deg C]. ``silent``: ESC IDs whose feedback is lost.
+    """
+
+    def __init__(self, esc_ids: Iterable[int] = (1, 2),
+                 protocol: Optional[DjiC620Protocol] = None, temperature: int = 25):
+        self.protocol = protocol if protocol is not None else DjiC620Protocol()
+        self.ids = tuple(int(i) for i in esc_ids)
+        if not all(1 <= i <= 8 for i in self.ids):
+            raise ValueError('C620 ESC IDs are 1..8')
+        self.temperature = int(temperature)
+        self.state: Dict[int, Tuple[float, float]] = dict.fromkeys(self.ids, (0.0, 0.0))
+        self.currents: Dict[int, int] = dict.fromkeys(self.ids, 0)   # command codes
+        self.silent = set()
+
+    def torque(self, esc_id: int) -> float:
+        """Return the output torque [N m] of ESC ``esc_id``'s motor (its own direction)."""
+        p = self.protocol
+        return self.currents[esc_id] * (CURRENT_MAX / CURRENT_CODE_MAX) * p.torque_constant
+
+    def handle(self, frame: Frame, now: float = 0.0) -> List[Frame]:
+        """Act on a frame as the ESCs do; return their feedback frames ([] if none is sent)."""
+        codes = self.protocol.decode_command(frame)
+        if codes is None:
+            return []
+        ratio = self.protocol.gear_ratio
+        out = []
+        for esc_id, code in codes.items():
+            if esc_id not in self.currents:
+                continue
+            self.currents[esc_id] = code
+            if esc_id in self.silent:
+                continue
+            position, velocity = (x if math.isfinite(x) else 0.0 for x in self.state[esc_id])
+            angle = round(position * ratio * ENCODER_COUNTS / (2.0 * math.pi))
+            rpm = round(velocity * ratio * 60.0 / (2.0 * math.pi))
+            out.append(self.protocol.encode_feedback(esc_id, angle, rpm, code,
+                                                     self.temperature))
+        return out

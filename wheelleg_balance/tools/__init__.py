@@ -1,1 +1,0 @@
-"""Command-line tools: experiments, benchmark, main job, fault report."""

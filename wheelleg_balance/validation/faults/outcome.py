@@ -1,0 +1,94 @@
+"""
+The result of a fault scenario, and the checks most scenarios share (the FAULT reaction).
+
+An ``Outcome`` is a list of (what was required, whether it held), the time from the fault to
+zero torque on the bus, and other measured figures: the test asserts every check, the
+``fault_report`` command prints them.
+"""
+from dataclasses import dataclass, field
+import time
+from typing import Dict, List, Optional, Tuple
+
+from .bench import MODE
+from .doubles import FakeMotors, MOTOR_IDS
+from .rig import PERIOD, REACTION_TIME_CHECK, Rig
+
+
+@dataclass
+class Outcome:
+    """
+    The result of one scenario.
+
+    checks: (what was required, whether it held); time_to_zero: fault to zero torque on the bus
+    [s] (None: not applicable or not reached); figures: other measured numbers.
+    """
+
+    name: str
+    fault: str
+    expected: str
+    checks: List[Tuple[str, bool]] = field(default_factory=list)
+    time_to_zero: Optional[float] = None
+    figures: Dict[str, object] = field(default_factory=dict)
+
+    def check(self, text: str, ok) -> bool:
+        self.checks.append((text, bool(ok)))
+        return bool(ok)
+
+    @property
+    def handled(self) -> bool:
+        """Tell whether every check held (and there was one)."""
+        return bool(self.checks) and all(ok for _, ok in self.checks)
+
+    @property
+    def failures(self) -> List[str]:
+        return [text for text, ok in self.checks if not ok]
+
+    def as_dict(self) -> dict:
+        return {'name': self.name, 'fault': self.fault, 'expected': self.expected,
+                'handled': self.handled, 'time_to_zero_s': self.time_to_zero,
+                'checks': len(self.checks), 'failures': self.failures,
+                'figures': self.figures}
+
+
+def _torque_before(motors: FakeMotors, t: float) -> bool:
+    return any(abs(tau) > 0.1 for tau in motors.torques(1, t - 0.1, t))
+
+
+def _zero_reaction(out: Outcome, rig: Rig, t_fault: float, bound: float, code: str,
+                   not_before: float = 0.0) -> None:
+    """
+    Check the common FAULT reaction: FAULT, the fault code, zero torque within ``bound``.
+
+    ``not_before`` [s]: the zero torque must not come sooner either (a timeout).
+    """
+    robot, motors = rig.robot, rig.motors
+    out.check('non-zero torque just before the fault (so zero torque is a reaction)',
+              _torque_before(motors, t_fault))
+    t_mode = robot.wait_mode('FAULT', bound + 1.0)
+    out.check('~/state reports FAULT', t_mode is not None)
+    if t_mode is None:
+        return
+    out.check('diagnostics name the fault %r' % code, robot.wait_fault_code(code, 2.0))
+    time.sleep(0.3)
+    t_zero = motors.zero_since(t_fault)
+    out.time_to_zero = None if t_zero is None else t_zero - t_fault
+    out.check('%s %.0f ms of the fault' % (REACTION_TIME_CHECK, 1e3 * bound),
+              out.time_to_zero is not None and out.time_to_zero <= bound)
+    if not_before:
+        out.check('but not before %.0f ms' % (1e3 * not_before),
+                  out.time_to_zero is not None and out.time_to_zero >= not_before)
+    if t_zero is not None:
+        n = min(len(motors.torques(m, t_zero)) for m in motors.ids)
+        out.check('FAULT keeps commanding zero torque every tick (>= 100 frames in 0.3 s)',
+                  n >= 100)
+
+
+def _torque_flowing(rig: Rig, seconds: float = 0.2) -> bool:
+    t0 = time.time()
+    time.sleep(seconds)
+    return all(len(rig.motors.torques(m, t0)) >= 0.5 * seconds / PERIOD for m in MOTOR_IDS)
+
+
+def _balancing_since(rig: Rig, t0: float) -> bool:
+    modes = rig.robot.modes_since(t0)
+    return bool(modes) and all(m == MODE['BALANCING'] for m in modes)

@@ -1,0 +1,674 @@
+"""
+The fault scenarios that run balance_node as on the robot (validation/faults/rig.py).
+
+Each scenario injects one fault at the outside of the node (a message, a CAN frame, a send
+failure, a parameter request, a signal) and returns an Outcome with the checks of its required
+reaction, read off the bus and the node's topics. The signal scenarios run the node as its own
+process on ``udp_multicast``; the push scenario runs it against sim_node (MuJoCo) in this
+process.
+"""
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from typing import Callable, Optional
+import uuid
+
+import can
+from can.interfaces.virtual import VirtualBus
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import JointState
+
+from .bench import IDX, LEG_PARAMS, MIT, MODE, TORQUE_LSB
+from .doubles import bus_off, ErrorFrameStorm, FakeMotors, MOTOR_IDS, tx_queue_full
+from .matrices import JOINT_STATES, set_field
+from .outcome import _balancing_since, _torque_before, _torque_flowing, _zero_reaction, Outcome
+from .plants import StaticPlant
+from .rig import (FakeRobot, ImuWatch, Rig, RIG_PARAMS, SLACK, Spinning,
+                  unique_namespace, wait_for)
+from .. import child_env
+from ...core.config import DEFAULTS
+from ...nodes.balance_node import BalanceNode
+
+
+def _on_armed_rig(context, out: Outcome, run: Callable[[Rig], None], **rig_args) -> Outcome:
+    """
+    Run ``run(rig)`` on a Rig(context, **rig_args) once it is armed; return ``out``.
+
+    Arming is a check of ``out`` (``run`` is skipped when it fails); the rig is closed after.
+    """
+    with Rig(context, **rig_args) as rig:
+        if out.check('armed', rig.arm()):
+            # The rig leans the robot, so balancing means torque: let the first commands reach
+            # the bus before the fault (a fault injected within a tick of arming found only the
+            # enter-motor-mode frames and failed the "torque before the fault" check).
+            wait_for(lambda: _torque_before(rig.motors, time.time()), 1.0)
+            run(rig)
+    return out
+
+
+def _timeout_fault(context, out: Outcome, stop: Callable[[Rig], None],
+                   last_sample: Callable[[Rig], float], timeout_param: str, code: str,
+                   not_before: bool = True, params: Optional[dict] = None) -> Outcome:
+    """
+    Stop a stream (``stop(rig)``); require FAULT ``code`` within ``timeout_param`` of it.
+
+    The timeout counts from ``last_sample(rig)``, the time [s] of the last good sample;
+    ``not_before``: the zero torque must not come before the timeout either.
+    """
+    def run(rig):
+        stop(rig)
+        time.sleep(0.02)
+        timeout = rig.params[timeout_param]
+        _zero_reaction(out, rig, last_sample(rig), timeout + SLACK, code,
+                       not_before=timeout if not_before else 0.0)
+    return _on_armed_rig(context, out, run, **(params or {}))
+
+
+#: The robot's own timeouts (core/config.py defaults, 50 ms), for the timeout scenarios'
+#: variants that run without the rig's doubling.
+ROBOT_TIMEOUTS = {name: getattr(DEFAULTS.safety, name)
+                  for name in ('imu_timeout', 'joint_state_timeout', 'motor_timeout')}
+
+
+def _name(name: str, timeouts: Optional[dict]) -> str:
+    return name if timeouts is None else '%s_%dms' % (name, round(1e3 * timeouts['imu_timeout']))
+
+
+def scenario_imu_silent(context, timeouts: Optional[dict] = None) -> Outcome:
+    out = Outcome(_name('imu_silent', timeouts), 'IMU stops publishing',
+                  'FAULT imu_stale, zero torque within imu_timeout')
+
+    def stop(rig):
+        rig.robot.imu_on = False
+    return _timeout_fault(context, out, stop, lambda rig: rig.robot.last_imu_time,
+                          'imu_timeout', 'imu_stale', params=timeouts)
+
+
+def scenario_imu_frozen(context, timeouts: Optional[dict] = None) -> Outcome:
+    out = Outcome(_name('imu_frozen', timeouts), 'IMU republishes one sample, same header '
+                  'stamp', 'FAULT imu_stale within imu_timeout of the last new stamp')
+
+    def stop(rig):
+        rig.robot.freeze_imu = True
+    return _timeout_fault(context, out, stop, lambda rig: rig.robot.last_new_imu_time,
+                          'imu_timeout', 'imu_stale', not_before=False, params=timeouts)
+
+
+def _message_fault(context, name: str, fault: str, inject, code: str,
+                   params: Optional[dict] = None, plant=None) -> Outcome:
+    out = Outcome(name, fault, 'FAULT %s, zero torque at the tick after the sample' % code)
+
+    def run(rig):
+        t_fault = time.time()
+        inject(rig)
+        _zero_reaction(out, rig, t_fault, SLACK, code)
+    return _on_armed_rig(context, out, run, plant=plant, **(params or {}))
+
+
+def _set_hook(attr: str, path: str, value):
+    def inject(rig):
+        setattr(rig.robot, attr, lambda msg: set_field(msg, path, value))
+    return inject
+
+
+def scenario_imu_nan(context) -> Outcome:
+    return _message_fault(context, 'imu_nan', 'NaN in Imu.orientation.y',
+                          _set_hook('imu_hook', 'orientation.y', math.nan), 'non_finite')
+
+
+def scenario_imu_rate_inf(context) -> Outcome:
+    return _message_fault(context, 'imu_rate_inf', '+inf in Imu.angular_velocity.y',
+                          _set_hook('imu_hook', 'angular_velocity.y', math.inf), 'non_finite')
+
+
+def scenario_quaternion_not_unit(context) -> Outcome:
+    def inject(rig):
+        def hook(msg):
+            o = msg.orientation
+            o.x, o.y, o.z, o.w = 0.0, 0.0, 0.0, 0.5   # norm 0.5: not an orientation
+        rig.robot.imu_hook = hook
+    return _message_fault(context, 'quaternion_not_unit', 'Imu.orientation of norm 0.5',
+                          inject, 'non_finite')
+
+
+def scenario_wheel_velocity_nan(context) -> Outcome:
+    return _message_fault(context, 'wheel_velocity_nan', 'NaN left wheel velocity',
+                          _set_hook('joint_hook', 'velocity[0]', math.nan), 'non_finite',
+                          params=JOINT_STATES)
+
+
+def scenario_leg_out_of_reach(context) -> Outcome:
+    plant = StaticPlant()
+    plant.legs = (0.25, 0.25, 0.25, 0.25)   # l = 0.37 m
+
+    def inject(rig):
+        rig.plant.legs = (2.5, 2.5, 0.25, 0.25)   # beyond q_max = 1.6 rad: no five-bar pose
+    return _message_fault(context, 'leg_out_of_reach',
+                          'left hip angles 2.5 rad, outside the five-bar reach', inject,
+                          'non_finite', params=dict(JOINT_STATES, **LEG_PARAMS), plant=plant)
+
+
+def scenario_fall_forward(context) -> Outcome:
+    def inject(rig):
+        rig.plant.theta = math.radians(50.0)
+    return _message_fault(context, 'fall_forward', 'IMU pitch +50 deg (fall_angle 45 deg)',
+                          inject, 'fall')
+
+
+def scenario_fall_backward(context) -> Outcome:
+    def inject(rig):
+        rig.plant.theta = math.radians(-50.0)
+    return _message_fault(context, 'fall_backward', 'IMU pitch -50 deg (fall_angle 45 deg)',
+                          inject, 'fall')
+
+
+def scenario_wheels_missing(context, timeouts: Optional[dict] = None) -> Outcome:
+    out = Outcome(_name('wheel_joints_missing', timeouts), 'joint_states without the wheel '
+                  'joints', 'FAULT joint_states_stale within joint_state_timeout')
+
+    def stop(rig):
+        rig.robot.joint_hook = _rename_joints
+    return _timeout_fault(context, out, stop, lambda rig: rig.robot.last_clean_joint_time,
+                          'joint_state_timeout', 'joint_states_stale',
+                          params=dict(JOINT_STATES, **(timeouts or {})))
+
+
+def _rename_joints(msg: JointState) -> None:
+    msg.name = ['other_joint_%d' % i for i in range(len(msg.name))]
+
+
+def scenario_motor_silent(context, timeouts: Optional[dict] = None) -> Outcome:
+    out = Outcome(_name('motor_silent', timeouts), 'right wheel motor stops replying',
+                  'FAULT motor_silent within motor_timeout, zero torque to both motors')
+    return _timeout_fault(context, out, lambda rig: rig.motors.silent.add(2),
+                          lambda rig: rig.motors.last_reply[2], 'motor_timeout', 'motor_silent',
+                          params=timeouts)
+
+
+def scenario_unknown_reply_id(context) -> Outcome:
+    out = Outcome('reply_unknown_id', 'right motor replies carry id 7 (no such motor)',
+                  'replies of unknown ids are ignored: FAULT motor_silent (motor 2)')
+
+    def run(rig):
+        t_fault = time.time()
+        rig.motors.motor(2).reply_id = 7
+        _zero_reaction(out, rig, t_fault, rig.params['motor_timeout'] + SLACK, 'motor_silent')
+        can_status = rig.robot.can_status()
+        out.check('diagnostics: motor 2 not alive, motor 1 alive',
+                  can_status.get('motor_2_alive') == 'False'
+                  and can_status.get('motor_1_alive') == 'True')
+    return _on_armed_rig(context, out, run)
+
+
+def scenario_stranger_replies(context) -> Outcome:
+    out = Outcome('stranger_replies', 'a third device replies as id 7, 500 frames/s, beside '
+                  'both motors', 'ignored: keeps BALANCING')
+
+    def run(rig):
+        stranger = can.Bus(interface='virtual', channel=rig.channel)
+        reply = MIT.encode_reply(7, 1.0, 2.0, 3.0)
+        t0 = time.time()
+        try:
+            for _ in range(250):
+                stranger.send(can.Message(arbitration_id=reply.arbitration_id,
+                                          data=reply.data, is_extended_id=False))
+                time.sleep(0.002)
+        finally:
+            stranger.shutdown()
+        out.check('still BALANCING', _balancing_since(rig, t0))
+        out.check('torque frames keep flowing', _torque_flowing(rig))
+    return _on_armed_rig(context, out, run)
+
+
+def _send_failure(context, name: str, fault: str, error_factory) -> Outcome:
+    out = Outcome(name, fault, 'FAULT can_send at the first failed send; once the bus takes '
+                  'frames again, the first ones are zero torque')
+
+    def run(rig):
+        t_fault = time.time()
+        out.check('non-zero torque just before the fault', _torque_before(rig.motors, t_fault))
+        rig.node_bus.fail_with = error_factory()
+        t_mode = rig.robot.wait_mode('FAULT', 1.0)
+        out.check('~/state reports FAULT', t_mode is not None)
+        if t_mode is not None:
+            out.figures['time_to_fault_mode_s'] = round(t_mode - t_fault, 4)
+        out.check('diagnostics name the fault can_send', rig.robot.wait_fault_code('can_send'))
+        time.sleep(0.2)
+        t_heal = time.time()
+        rig.node_bus.fail_with = None
+        time.sleep(0.3)
+        t_failed = rig.node_bus.first_failure
+        out.check('a send failed', t_failed is not None)
+        frames = {m: rig.motors.frames(m, t_failed or t_fault) for m in MOTOR_IDS}
+        out.check('nothing reached the bus while sends failed',
+                  all(t >= t_heal for m in MOTOR_IDS for t, _, _ in frames[m]))
+        out.check('after recovery every frame is zero torque',
+                  all(frames[m] and all(k == 'torque' and abs(tau) <= TORQUE_LSB
+                                        for _, k, tau in frames[m]) for m in MOTOR_IDS))
+        first = [frames[m][0][0] for m in MOTOR_IDS if frames[m]]
+        if len(first) == len(MOTOR_IDS):
+            out.time_to_zero = max(first) - t_heal
+            out.figures['measured_from'] = 'bus recovery (no frame can get out before)'
+        out.check('still FAULT after the bus recovered', rig.robot.mode() == MODE['FAULT'])
+        out.check('no exception in the control tick',
+                  rig.robot.loop_status().get('tick_errors') == '0')
+    return _on_armed_rig(context, out, run)
+
+
+def _motor_8_byte_replies(rig: Rig, motor_id: int):
+    """Return a motor's emulator, switched to 8-byte replies (temperature, error code)."""
+    motor = rig.motors.motor(motor_id)
+    motor.reply_temperature = True
+    return motor
+
+
+def scenario_motor_error(context) -> Outcome:
+    def inject(rig):
+        _motor_8_byte_replies(rig, MOTOR_IDS[1]).set_error(2)
+    out = _message_fault(context, 'motor_error', 'right motor replies error code 2 '
+                         '(over-current)', inject, 'motor_error')
+    return out
+
+
+def scenario_motor_rebooted(context) -> Outcome:
+    """Power-cycle the right wheel motor at 3 rad: rest mode, its angle modulo a rotor turn."""
+    motor_id = MOTOR_IDS[1]
+
+    def inject(rig):
+        with rig.motors._lock:
+            rig.motors.motor(motor_id).reboot(rig.motors.motors.joints[motor_id][0])
+    return _message_fault(context, 'motor_rebooted', 'right motor reboots (rest mode, '
+                          'position jumps by rotor turns)', inject, 'motor_rebooted',
+                          params={'motor_angles': {motor_id: 3.0}})
+
+
+def scenario_motor_over_temperature(context) -> Outcome:
+    """Report temp_max from the right motor (class b): the sit-down starts (~/state SITTING)."""
+    out = Outcome('motor_over_temperature', 'right motor reports 85 deg C (temp_max)',
+                  'the sit-down starts at the next tick that reads the reply (~/state '
+                  'SITTING), arming refused while hot')
+
+    def run(rig):
+        t0 = time.time()
+        _motor_8_byte_replies(rig, MOTOR_IDS[1]).set_temperature(85.0)
+        t_sit = rig.robot.wait_mode('SITTING', 1.0)
+        out.check('~/state reports SITTING', t_sit is not None)
+        if t_sit is not None:
+            out.figures['time_to_sitting_ms'] = round(1e3 * (t_sit - t0), 1)
+            out.check('SITTING within %.0f ms' % (1e3 * SLACK), t_sit - t0 <= SLACK)
+        rig.robot.arm(False)   # a disarm ends the sit-down at once (the rig's robot is still)
+        out.check('DISARMED after a disarm', rig.robot.wait_mode('DISARMED', 2.0) is not None)
+        reply = rig.robot.arm()
+        out.check('re-arm refused while hot, naming temp_max',
+                  not reply.success and 'temp_max' in reply.message)
+    return _on_armed_rig(context, out, run)
+
+
+def _stamp_fault(context, name: str, fault: str, offset: float) -> Outcome:
+    out = Outcome(name, fault, 'samples refused: FAULT imu_stale within imu_timeout')
+    t_bad = []
+
+    def stop(rig):
+        def hook(msg):
+            t = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec + offset
+            msg.header.stamp.sec, msg.header.stamp.nanosec = int(t), int((t % 1.0) * 1e9)
+        t_bad.append(time.time())
+        rig.robot.imu_hook = hook
+    return _timeout_fault(context, out, stop, lambda rig: t_bad[0], 'imu_timeout',
+                          'imu_stale', not_before=False)
+
+
+def scenario_imu_stamp_future(context) -> Outcome:
+    return _stamp_fault(context, 'imu_stamp_future', "IMU stamped 1 s ahead of the node's "
+                        'clock (stamp_tolerance 0.1 s)', 1.0)
+
+
+def scenario_imu_stamp_backwards(context) -> Outcome:
+    return _stamp_fault(context, 'imu_stamp_backwards', 'IMU stamps jump 5 s back (a driver '
+                        'restarted with another clock)', -5.0)
+
+
+def scenario_tx_queue_full(context) -> Outcome:
+    return _send_failure(context, 'can_tx_queue_full', 'bus.send raises CanOperationError '
+                         '(ENOBUFS, full TX queue)', tx_queue_full)
+
+
+def scenario_bus_off(context) -> Outcome:
+    return _send_failure(context, 'can_bus_off', 'bus.send raises CanOperationError '
+                         '(ENETDOWN, bus-off)', bus_off)
+
+
+def scenario_error_frame_storm(context) -> Outcome:
+    """
+    4000 CAN error frames/s for 1 s into the node's receive queue.
+
+    The torque frame rate during the storm is compared with the rate of the second before it
+    on the same rig, so the load of the machine cancels out. The storm is put straight into the
+    node's queue (doubles.ErrorFrameStorm: what it cost when sent through the virtual bus to
+    every receiver was the test's own load, not the node's).
+    """
+    out = Outcome('error_frame_storm', '4000 error frames/s on the bus for 1 s',
+                  'error frames are ignored: keeps BALANCING, torque frame rate >= 80 % of '
+                  'the rate before the storm')
+
+    def run(rig):
+        def rate(t0, t1):
+            return min(len(rig.motors.torques(m, t0, t1)) for m in MOTOR_IDS) / (t1 - t0)
+        t0 = time.time()
+        time.sleep(1.0)
+        storm = ErrorFrameStorm(rig.node_bus).start()
+        t1 = time.time()
+        time.sleep(1.0)
+        t2 = time.time()
+        storm.stop()
+        before, during = rate(t0, t1), rate(t1, t2)
+        out.figures['error_frames_sent'] = storm.sent
+        out.figures['torque_frames_per_s_before'] = round(before, 1)
+        out.figures['torque_frames_per_s_during'] = round(during, 1)
+        if not out.check('still BALANCING', _balancing_since(rig, t0)):
+            out.figures['fault_reasons'] = rig.robot.safety().get('fault_reasons')
+        out.check('torque frames/s during the storm %.0f >= 80 %% of %.0f before'
+                  % (during, before), during >= 0.8 * before)
+        out.check('the node received the error frames',
+                  rig.node.status['can']['rx_frames'] >= 0.5 * storm.sent)
+    return _on_armed_rig(context, out, run)
+
+
+def scenario_cmd_vel_invalid(context) -> Outcome:
+    out = Outcome('cmd_vel_invalid', 'cmd_vel with NaN / +-inf, then 1e300 linear.x',
+                  'NaN/inf dropped and counted; 1e300 limited to reference.max_velocity '
+                  '(1 m/s); keeps BALANCING')
+
+    def run(rig):
+        t0 = time.time()
+        for bad in (math.nan, math.inf, -math.inf):
+            rig.robot.cmd = (bad, 0.0)
+            time.sleep(0.15)
+        rig.robot.cmd = (1e300, -1e300)
+        time.sleep(1.5)
+        rig.robot.cmd = None
+        states = [s for t, s in list(rig.robot.states) if t >= t0]
+        refs = [s[IDX['x_dot_ref']] for s in states]
+        yaw = [s[IDX['yaw_rate_ref']] for s in states]
+        out.check('still BALANCING', _balancing_since(rig, t0))
+        out.check('x_dot* finite and within +-1 m/s',
+                  all(math.isfinite(r) and abs(r) <= 1.0 + 1e-9 for r in refs))
+        out.check('yaw rate* finite and within +-3 rad/s',
+                  all(math.isfinite(r) and abs(r) <= 3.0 + 1e-9 for r in yaw))
+        out.check('x_dot* stayed 0 while only NaN/inf came',
+                  all(r == 0.0 for t, s in list(rig.robot.states) if t0 <= t < t0 + 0.4
+                      for r in [s[IDX['x_dot_ref']]]))
+        out.check('the 1e300 command took x_dot* to the limit 1 m/s', max(refs) >= 1.0 - 1e-9)
+        out.check('NaN/inf commands counted as rejected (diagnostics rejected_cmd_vel)',
+                  wait_for(lambda: int(rig.robot.safety().get('rejected_cmd_vel', 0)) >= 3,
+                           2.0))
+    return _on_armed_rig(context, out, run)
+
+
+def _cmd_stamp(context, name: str, fault: str, offset: float) -> Outcome:
+    out = Outcome(name, fault, 'stamps are not compared with our clock (docs/balance_node.md): '
+                  'applied within the reference limits, and it still times out by receipt '
+                  'time: x_dot* ramps to 0 after cmd_vel_timeout')
+
+    def run(rig):
+        rig.robot.cmd_stamp_offset = offset
+        t0 = time.time()
+        rig.robot.cmd = (0.5, 0.0)
+        time.sleep(0.8)
+        t_stop = time.time()
+        rig.robot.cmd = None
+        time.sleep(1.2)
+        history = [(t, s[IDX['x_dot_ref']]) for t, s in list(rig.robot.states) if t >= t0]
+        before = [r for t, r in history if t < t_stop]
+        out.check('applied: x_dot* reached 0.5 m/s', before and max(before) >= 0.5 - 1e-9)
+        out.check('ramped at <= 1 m/s^2 (reaching 0.5 m/s took >= 0.45 s)',
+                  next((t for t, r in history if r >= 0.5 - 1e-9), t0) - t0 >= 0.45)
+        t_zero = next((t for t, r in history if t > t_stop and r == 0.0), None)
+        out.check('back to 0 within cmd_vel_timeout + 0.5 s ramp + 0.2 s after it stopped',
+                  t_zero is not None and t_zero - t_stop <= 0.3 + 0.5 + 0.2)
+        out.check('still BALANCING', _balancing_since(rig, t0))
+    return _on_armed_rig(context, out, run, cmd_vel_timeout=0.3)
+
+
+def scenario_cmd_vel_stale(context) -> Outcome:
+    return _cmd_stamp(context, 'cmd_vel_stale', 'cmd_vel stamped 2 s in the past', -2.0)
+
+
+def scenario_cmd_vel_future(context) -> Outcome:
+    return _cmd_stamp(context, 'cmd_vel_future', 'cmd_vel stamped 10 s in the future', 10.0)
+
+
+#: SetParameters requests that must be refused: (name, value, why).
+BAD_PARAMETERS = (
+    ('yaw_rate_gain', 50.0, 'above its range'),
+    ('max_wheel_torque', 25.0, 'above the motor limit can.mit.t_max'),
+    ('max_wheel_torque', -1.0, 'below its range'),
+    ('max_wheel_torque', math.nan, 'NaN'),
+    ('fall_angle', math.inf, 'inf'),
+    ('fall_angle', 3.0, 'beyond pi/2'),
+    ('imu_timeout', 0.0, 'below its range'),
+    ('cmd_vel_timeout', -math.inf, '-inf'),
+    ('height', 0.9, 'above height_max'),
+    ('controller', 'pid', 'unknown controller'),
+    ('max_wheel_torque', 'high', 'wrong type: string'),
+    ('fall_angle', True, 'wrong type: bool'),
+    ('controller', 1, 'wrong type: integer'),
+    ('imu_timeout', [0.1, 0.2], 'wrong type: array'),
+    ('wheel_radius', 0.2, 'read-only'),
+    ('can.left_motor_id', 5, 'read-only'),
+)
+
+
+def scenario_bad_parameters(context) -> Outcome:
+    out = Outcome('bad_parameters', 'SetParameters with %d out-of-range / wrong-type / '
+                  'read-only values' % len(BAD_PARAMETERS),
+                  'each refused with a reason, nothing changes, keeps BALANCING')
+
+    def run(rig):
+        robot = rig.robot
+        t0 = time.time()
+        for name, value, why in BAD_PARAMETERS:
+            before = robot.get_param(name)
+            (result,) = robot.set_params(**{name: value})
+            out.check('%s = %r (%s) refused with a reason' % (name, value, why),
+                      not result.successful and result.reason)
+            out.check('%s unchanged' % name, robot.get_param(name) == before)
+        out.check('still BALANCING', _balancing_since(rig, t0))
+        out.check('torque within max_wheel_torque (12 N m)',
+                  all(abs(t) <= 12.0 + TORQUE_LSB for m in MOTOR_IDS
+                      for t in rig.motors.torques(m, t0)))
+        # A good value does change the node, so the checks above can tell.
+        (result,) = robot.set_params(max_wheel_torque=3.0)
+        out.check('max_wheel_torque = 3.0 accepted', result.successful)
+        time.sleep(0.05)
+        t1 = time.time()
+        time.sleep(0.2)
+        after = [abs(t) for m in MOTOR_IDS for t in rig.motors.torques(m, t1)]
+        out.check('the accepted 3 N m limits the torque from the next ticks on',
+                  bool(after) and max(after) <= 3.0 + TORQUE_LSB)
+    return _on_armed_rig(context, out, run)
+
+
+def scenario_loosen_while_balancing(context) -> Outcome:
+    out = Outcome('loosen_while_balancing', 'SetParameters that loosen imu_timeout, fall_angle, '
+                  'max_wheel_torque while balancing', 'refused with a reason, unchanged; '
+                  'tightening accepted; loosening accepted again once disarmed')
+
+    def run(rig):
+        robot = rig.robot
+        t0 = time.time()
+        loosen = {'imu_timeout': 0.5, 'fall_angle': 1.2, 'max_wheel_torque': 15.0}
+        for name, value in loosen.items():
+            before = robot.get_param(name)
+            (result,) = robot.set_params(**{name: value})
+            out.check('%s = %r refused while balancing (%s)' % (name, value, result.reason),
+                      not result.successful and 'only be tightened' in result.reason)
+            out.check('%s unchanged' % name, robot.get_param(name) == before)
+        (result,) = robot.set_params(imu_timeout=0.09)
+        out.check('imu_timeout 0.1 -> 0.09 (tighter) accepted', result.successful)
+        out.check('BALANCING throughout the requests', _balancing_since(rig, t0))
+        robot.arm(False)   # the sit-down; the rig's robot does not sit: a second disarm ends it
+        robot.arm(False)
+        out.check('disarmed', wait_for(lambda: robot.mode() == MODE['DISARMED'], 2.0))
+        time.sleep(0.05)
+        (result,) = robot.set_params(imu_timeout=0.2)
+        out.check('imu_timeout 0.2 accepted once disarmed (%s)' % result.reason,
+                  result.successful)
+    return _on_armed_rig(context, out, run)
+
+
+def _signal_scenario(context, sig: int) -> Outcome:
+    name = signal.Signals(sig).name
+    out = Outcome('%s_shutdown' % name.lower(), '%s to a balancing balance_node process' % name,
+                  'zero torque, then exit motor mode, exit code 0')
+    pid = os.getpid()
+    group = '239.74.163.%d' % (1 + (pid + sig) % 99)
+    port = 45000 + (pid + 7 * sig) % 2000
+    motors = FakeMotors(can.Bus(interface='udp_multicast', channel=group, port=port))
+    namespace = unique_namespace()
+    robot = FakeRobot(context, StaticPlant(), motors, namespace)
+    spinning = Spinning(context, (robot,))
+    robot.start()
+    env = child_env()
+    args = [sys.executable, '-m', 'wheelleg_balance.nodes.balance_node', '--ros-args',
+            '-r', '__ns:=%s' % namespace,
+            '-p', 'can.interface:=udp_multicast', '-p', 'can.channel:=%s' % group,
+            '-p', 'can.udp_port:=%d' % port, '-p', 'auto_arm:=true',
+            '-p', 'imu_timeout:=0.5', '-p', 'joint_state_timeout:=0.5',
+            '-p', 'motor_timeout:=0.5']
+    proc = subprocess.Popen(args, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    err = ''
+    try:
+        balancing = wait_for(lambda: any(abs(t) > 0.1 for t in motors.torques(1)[-5:]), 30.0,
+                             step=0.02)
+        out.check('the process balances (auto_arm)', balancing)
+        if balancing:
+            t_sig = time.time()
+            proc.send_signal(sig)
+            _, err = proc.communicate(timeout=15.0)
+            time.sleep(0.1)
+            out.check('exit code 0', proc.returncode == 0)
+            out.check('no traceback', 'Traceback' not in err)
+            for m in MOTOR_IDS:
+                frames = [(k, tau) for _, k, tau in motors.frames(m) if k in ('torque', 'exit')]
+                out.check('motor %d: the last frame exits motor mode' % m,
+                          bool(frames) and frames[-1][0] == 'exit')
+                last_push = max((i for i, (_, tau) in enumerate(frames)
+                                 if abs(tau) > TORQUE_LSB), default=-1)
+                out.check('motor %d: zero torque between the last push and the exit' % m,
+                          frames[last_push + 1:][:1] == [('torque', frames[-2][1])]
+                          and abs(frames[-2][1]) <= TORQUE_LSB)
+            t_zero = motors.zero_since(t_sig)
+            out.time_to_zero = None if t_zero is None else t_zero - t_sig
+            exits = [t for m in MOTOR_IDS for t, k, _ in motors.frames(m, t_sig) if k == 'exit']
+            if exits:
+                out.figures['signal_to_exit_frames_s'] = round(max(exits) - t_sig, 4)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            _, err = proc.communicate()
+        robot.stop()
+        spinning.stop()
+        robot.destroy_node()
+        motors.close()
+    if err and not out.handled:
+        out.figures['stderr_tail'] = err[-500:]
+    return out
+
+
+def scenario_sigint(context) -> Outcome:
+    return _signal_scenario(context, signal.SIGINT)
+
+
+def scenario_sigterm(context) -> Outcome:
+    return _signal_scenario(context, signal.SIGTERM)
+
+
+# ------------------------------------------------------------------------ against sim_node
+
+
+#: The push of the sim_node scenario: (start [s, simulated], duration [s], force_x [N]).
+SIM_PUSH = (5.0, 0.1, 600.0)
+
+
+def scenario_sim_node_push(context) -> Outcome:
+    """
+    Push the sim_node robot past the fall angle while balance_node balances it.
+
+    sim_node (MuJoCo, in this process) and balance_node share one virtual CAN bus; auto_arm
+    from the tail; a forward push of 600 N for 0.1 s at 5 s tips the robot past 45 deg.
+    """
+    from ...nodes.sim_node import SimNode
+    out = Outcome('push_fall_sim_node', 'sim_node robot pushed forward past the fall angle '
+                  '(600 N for 0.1 s)', 'FAULT fall, zero torque at the tick after the sample, '
+                  'the robot comes to rest, no torque until re-armed')
+    channel = 'wlb-faults-sim-%s' % uuid.uuid4().hex
+    start, duration, force = SIM_PUSH
+    namespace = unique_namespace()
+    sim = SimNode(context=context, namespace=namespace, parameter_overrides=[
+        Parameter('can.channel', value=channel), Parameter('ground_truth_rate', value=0.0),
+        Parameter('pushes', value=[start, duration, force, 0.0])])
+    overrides = [Parameter(k, value=v) for k, v in
+                 dict(RIG_PARAMS, auto_arm=True, right_wheel_direction=-1).items()]
+    node = BalanceNode(bus=VirtualBus(channel=channel), context=context, namespace=namespace,
+                       parameter_overrides=overrides)
+    recorder = FakeMotors(can.Bus(interface='virtual', channel=channel), answer=False)
+    watch = ImuWatch(context, namespace)
+    spinning = Spinning(context, (sim, node, watch))
+    sim.start()
+    try:
+        up = wait_for(lambda: node.status['mode'] == 'BALANCING', 10.0)
+        out.check('auto_arm balances from the tail', up)
+        out.check('upright before the push', up and wait_for(
+            lambda: abs(sim.sim.ground_truth()['theta']) < 0.15, 5.0, step=0.05))
+        pushed = wait_for(lambda: sim.sim.time > start + duration, 15.0, step=0.05)
+        out.check('the push happened', pushed)
+        fault = wait_for(lambda: node.status['mode'] == 'FAULT', 3.0)
+        t_seen = time.time()   # the recorder's and the watch's clock
+        out.check('FAULT', fault)
+        out.figures['fault_codes'] = ','.join(code for code, _ in node.status['faults'])
+        # Catching the fall spins the wheels up: past max_wheel_velocity (4.5 m/s) that is
+        # 'implausible', and a wheel that leaves the floor as the body tips spins up like a
+        # free one ('lifted'); both are class (a) like the fall, may come a few ticks before
+        # the pitch passes fall_angle, and cut there the robot may tip onto its tail (folded
+        # legs: 10 deg) without passing 45 deg.
+        cut = fault and any((code == 'implausible' and 'wheel_vel' in text) or code == 'lifted'
+                            for code, text in node.status['faults'])
+        out.check('fault code fall (or, while catching it, the wheels past max_wheel_velocity '
+                  'or spinning free)',
+                  fault and (cut or any(code == 'fall' for code, _ in node.status['faults'])))
+        time.sleep(3.0)
+        t_fall = watch.first_time
+        out.check('the IMU showed |pitch| > 45 deg, or the wheels were cut at their speed limit '
+                  'before', t_fall is not None or cut)
+        if t_fall is None and cut:
+            t_zero = recorder.zero_since(t_seen - 0.5)
+            out.check('zero torque on the bus from the FAULT on', t_zero is not None
+                      and t_zero <= t_seen + SLACK)
+        if t_fall is not None:
+            t_zero = recorder.zero_since(t_fall)
+            out.time_to_zero = None if t_zero is None else max(0.0, t_zero - t_fall)
+            out.check('zero torque within %.0f ms of the first sample past the fall angle'
+                      % (1e3 * SLACK), out.time_to_zero is not None
+                      and out.time_to_zero <= SLACK)
+            # Within 1 s: a cut at the wheel-speed limit may come well before the fall angle.
+            out.check('non-zero torque before the fall',
+                      any(abs(t) > 0.1 for t in recorder.torques(1, t_fall - 1.0, t_fall)))
+        truth = sim.sim.ground_truth()
+        out.figures['final_theta_deg'] = round(math.degrees(truth['theta']), 1)
+        out.figures['final_roll_deg'] = round(math.degrees(truth['roll']), 1)
+        out.check('the robot lies still (|theta_dot| %.3f < 0.2 rad/s)' % truth['theta_dot'],
+                  abs(truth['theta_dot']) < 0.2)
+        out.check('still FAULT', node.status['mode'] == 'FAULT')
+    finally:
+        sim.stop()
+        node.shutdown()
+        spinning.stop()
+        for n in (sim, node, watch):
+            n.destroy_node()
+        recorder.close()
+    return out

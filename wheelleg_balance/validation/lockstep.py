@@ -1,0 +1,121 @@
+"""
+The whole robot in lockstep: the control tick against the MuJoCo robot and its six motors.
+
+``Lockstep`` runs core/balance_loop.py's BalanceLoop, tick by tick on simulated time, against
+sim/robot_sim.py (hips as torque motors) and sim/robot_motors.py (one MIT firmware emulator per
+joint): the tick's frames go to the emulators, their replies (the true joint states, quantized
+as the firmware packs them) come back as the next tick's frames, and the IMU sample is the
+simulated one. No ROS, no bus, no wall clock: deterministic, faster than real time. It is the
+offline twin of main_job's sim_node + balance_node, for tests and tuning.
+"""
+import math
+from typing import Callable, Dict, List, Optional
+
+from ..core.balance_loop import BalanceLoop, CmdHeight, CmdVel, TickInputs
+from ..core.config import BalanceConfig
+from ..core.schema import check, from_flat
+from ..core.sensors import ImuSample
+from ..sim.robot_motors import default_specs, RobotMotors
+from ..sim.robot_sim import RobotSim
+
+#: balance_node's parameters for the simulated robot's six motors (config/balance_sim.yaml).
+SIM_PARAMS = {'legs.driven': True, 'legs.motor_ids': [3, 4, 5, 6]}
+
+
+class Lockstep:
+    """
+    BalanceLoop + RobotSim + RobotMotors (see the module docstring).
+
+    params: balance_node parameter overrides (SIM_PARAMS first); pose: RobotSim.reset's
+    ('folded', after power-up, by default);
+    imu_offset: the IMU's pitch offset d [rad]; power_up: the hips know their angle only
+    modulo a rotor turn (then ``legs.homing: hard_stops`` is needed); sim: further RobotSim
+    arguments (pushes, slope, ...).
+    """
+
+    def __init__(self, params: Optional[Dict] = None, pose: str = 'folded',
+                 imu_offset: float = 0.0, power_up: bool = False, height: float = 0.37,
+                 **sim):
+        cfg = from_flat(BalanceConfig, dict(SIM_PARAMS, **(params or {})))
+        problems = check(cfg)
+        if problems:
+            raise ValueError('; '.join(problems))
+        self.cfg = cfg
+        self.loop = BalanceLoop(cfg)
+        self.sim = RobotSim(d_offset=imu_offset, height=height, legs='motors', **sim)
+        self.sim.reset(pose)
+        lc, can = cfg.legs, cfg.can
+        self.motors = RobotMotors(self.sim, default_specs(
+            (can.left_motor_id, can.right_motor_id), (can.left_direction, can.right_direction),
+            tuple(lc.motor_ids), tuple(lc.directions), tuple(lc.offsets)), power_up=power_up)
+        self.period = cfg.loop.control_period
+        self.t = 0.0
+        self.inputs = TickInputs()
+        self._replies: List = []
+        self._stamp = 0
+        self.log: List[Dict[str, float]] = []
+        self.events: List = []
+        self.arm_replies: List = []
+        #: CAN IDs of motors whose replies are lost (they still act on the frames).
+        self.silent: set = set()
+
+    def tick(self) -> None:
+        """One control period: IMU and replies in, the tick, frames to the motors, physics."""
+        t = self.t
+        (qx, qy, qz, qw), gyro, accel = self.sim.imu()
+        self._stamp += 1
+        self.inputs.imu.append(ImuSample(t, 0, self._stamp, qx, qy, qz, qw, True, *gyro,
+                                         *accel))
+        self.inputs.frames.extend((t, f) for f in self._replies)
+        result = self.loop.tick(t, self.inputs)
+        self.inputs.clear()
+        self.loop.report_send(t, None)
+        self._replies = [r for r in (self.motors.handle(f) for f in
+                                     result.frames + result.leg_frames
+                                     ) if r is not None and r.data[0] not in self.silent]
+        if result.arm_reply is not None:
+            self.arm_replies.append(result.arm_reply)
+        self.events += result.events
+        gt = self.sim.ground_truth()
+        st = result.state
+        self.log.append({'t': t, 'mode': st.mode, 'theta_true': gt['theta'],
+                         'x_true': gt['x'], 'x_dot_true': gt['x_dot'], 'l_true': gt['l'],
+                         'roll_true': gt['roll'], 'theta_dot_true': gt['theta_dot'],
+                         'l': st.l, 'l_ref': st.l_ref, 'tau_left': st.tau_left,
+                         'tau_right': st.tau_right, 'd_hat': st.d_hat, 'x_dot': st.x_dot,
+                         'tail_clearance': self.sim.tail_clearance()})
+        self.motors.step(self.period)
+        self.t = t + self.period
+
+    def run(self, seconds: float, events: Optional[Dict[float, Callable[[], None]]] = None,
+            until: Optional[Callable[[], bool]] = None) -> None:
+        """Tick for ``seconds``; ``events`` {time [s] from now: callable}; stop at ``until``."""
+        pending = sorted((events or {}).items())
+        t0 = self.t
+        for _ in range(int(round(seconds / self.period))):
+            while pending and pending[0][0] <= self.t - t0 + 1e-9:
+                pending.pop(0)[1]()
+            self.tick()
+            if until is not None and until():
+                return
+
+    def arm(self, on: bool = True) -> None:
+        """Request arming (``on``) or disarming at the next tick."""
+        self.inputs.arm = on
+
+    def command(self, x_dot: float = 0.0, yaw_rate: float = 0.0) -> None:
+        """Hand a cmd_vel to the next tick."""
+        self.inputs.cmd_vel = CmdVel(self.t, x_dot, yaw_rate)
+
+    def command_height(self, l: float) -> None:
+        """Hand a cmd_height [m] to the next tick."""
+        self.inputs.cmd_height = CmdHeight(self.t, l)
+
+    @property
+    def mode(self) -> int:
+        """Return the supervisor's mode."""
+        return int(self.loop.mode)
+
+    def series(self, name: str, since: float = -math.inf) -> List[float]:
+        """Return the logged quantity ``name`` from ``since`` [s] on."""
+        return [row[name] for row in self.log if row['t'] >= since]
