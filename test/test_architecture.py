@@ -20,7 +20,7 @@ PACKAGE = REPO / 'wheelleg_balance'
 #: Top-level modules the core may not import.
 FORBIDDEN_IN_CORE = {'rclpy', 'can', 'sensor_msgs', 'geometry_msgs', 'nav_msgs', 'std_msgs',
                      'std_srvs', 'diagnostic_msgs', 'rcl_interfaces', 'builtin_interfaces',
-                     'mujoco', 'matplotlib'}
+                     'rosgraph_msgs', 'mujoco', 'matplotlib'}
 
 
 def _imports(path: pathlib.Path):

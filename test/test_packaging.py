@@ -30,6 +30,7 @@ IMPORT_TO_KEY = {
     'geometry_msgs': 'geometry_msgs', 'nav_msgs': 'nav_msgs', 'std_msgs': 'std_msgs',
     'std_srvs': 'std_srvs', 'diagnostic_msgs': 'diagnostic_msgs',
     'builtin_interfaces': 'builtin_interfaces', 'rcl_interfaces': 'rcl_interfaces',
+    'rosgraph_msgs': 'rosgraph_msgs',
     'ament_index_python': 'ament_index_python', 'launch': 'launch', 'launch_ros': 'launch_ros',
     'sympy': 'python3-sympy', 'hypothesis': 'python3-hypothesis', 'pytest': 'python3-pytest',
     'ament_flake8': 'ament_flake8', 'ament_pep257': 'ament_pep257', 'tf2_msgs': 'tf2_msgs',

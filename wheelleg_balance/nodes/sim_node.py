@@ -47,7 +47,8 @@ processes come and go (docs/benchmarks.md, "The 0.33 s stall").
 simulated time, and each tick first waits (at most ``lockstep_timeout``, wall clock) until
 every motor in motor mode has had a frame since the previous publish: the commands balance_node
 computed from that sample. The loop never catches up in bursts: when the wait or the CPU makes
-it late it simply runs slower than real time (``real_time_factor``). The closed loop is then
+it late it simply runs slower than real time (``real_time_factor``); ``/clock`` (rosgraph_msgs/Clock,
+100 Hz) carries the simulated time to nodes with ``use_sim_time``. The closed loop is then
 the same on a loaded machine as on an idle one (docs/simulation.md).
 """
 import sys
@@ -61,6 +62,7 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 from rclpy.time import Time
+from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
@@ -86,6 +88,8 @@ except MissingDependency as missing:
 #: The loop serves every missed deadline until this many periods behind, then restarts its
 #: schedule from now (simulated time follows the wall clock; a resync is counted).
 RESYNC_AFTER = 20
+#: Lockstep: /clock every this many ticks (100 Hz at 500 Hz).
+CLOCK_EVERY = 5
 
 
 class SimNode(Node):
@@ -148,6 +152,12 @@ class SimNode(Node):
                                                event_callbacks=lean.publisher_events())
         self.gt_pub = self.create_publisher(Float64MultiArray, '~/ground_truth', 10,
                                             event_callbacks=lean.publisher_events())
+        # Lockstep: /clock, so that nodes with use_sim_time (the scripted joystick, teleop_node)
+        # time themselves on the simulation; every CLOCK_EVERY ticks.
+        self.clock_pub = self.create_publisher(Clock, '/clock', 10,
+                                               event_callbacks=lean.publisher_events()) \
+            if cfg.lockstep else None
+        self._clock = Clock()
         self.create_subscription(JointState, '~/hand', self._on_hand, 10,
                                  event_callbacks=lean.subscription_events())
         self._imu = Imu()
@@ -235,6 +245,9 @@ class SimNode(Node):
     def _publish(self) -> None:
         if self.config.lockstep:
             stamp = Time(nanoseconds=int(round(self.motors.time * 1e9))).to_msg()
+            if self.ticks % CLOCK_EVERY == 0:
+                self._clock.clock = stamp
+                self.clock_pub.publish(self._clock)
         else:
             stamp = self.get_clock().now().to_msg()
         (qx, qy, qz, qw), gyro, acc = self.sim.imu()

@@ -21,7 +21,6 @@ from dataclasses import dataclass
 import signal
 import sys
 import threading
-import time
 
 from geometry_msgs.msg import Twist, TwistStamped
 import rclpy
@@ -34,6 +33,7 @@ from sensor_msgs.msg import Joy
 from std_msgs.msg import Float64
 from std_srvs.srv import SetBool
 
+from . import clock
 from .params import load, ParameterGuard
 from ..core.schema import param, section
 from ..core.teleop import Teleop, TeleopConfig
@@ -60,6 +60,7 @@ class TeleopNode(Node):
         self._lock = threading.Lock()
         self.teleop = Teleop(cfg.teleop)
         self.config = cfg
+        self._now = clock.seconds(self)   # simulated seconds under use_sim_time
         self.add_on_set_parameters_callback(ParameterGuard(cfg, self._apply))
         self._pub = self.create_publisher(TwistStamped if cfg.publish_stamped_twist else Twist,
                                           'cmd_vel', 10)
@@ -83,11 +84,11 @@ class TeleopNode(Node):
 
     def _on_joy(self, msg: Joy) -> None:
         with self._lock:
-            self.teleop.on_joy(msg.axes, msg.buttons, time.monotonic())
+            self.teleop.on_joy(msg.axes, msg.buttons, self._now())
 
     def _tick(self) -> None:
         with self._lock:
-            cmd = self.teleop.tick(time.monotonic())
+            cmd = self.teleop.tick(self._now())
             height = self.teleop.take_height()
             arm = self.teleop.take_arm()
         if cmd is not None:

@@ -112,9 +112,10 @@ class FakeMotors:
                 continue
             for reply in replies:
                 try:
+                    t_send = time.time()   # before the send: the node may take it at once
                     self.bus.send(can.Message(arbitration_id=reply.arbitration_id,
                                               data=reply.data, is_extended_id=False))
-                    self.last_reply[motor] = time.time()
+                    self.last_reply[motor] = t_send
                 except (can.CanError, OSError):
                     pass
 

@@ -163,8 +163,11 @@ class FakeRobot(Node):
                     a.x, a.y, a.z = accel
                     if self.imu_hook is not None:
                         self.imu_hook(imu)
+                # Taken before the publish: the node may receive the sample before publish()
+                # returns, and a timeout counts from its receipt.
+                t_pub = time.time()
                 self.imu_pub.publish(imu)
-                self.last_imu_time = time.time()
+                self.last_imu_time = t_pub
                 if not self.freeze_imu:
                     self.last_new_imu_time = self.last_imu_time
             if self.joints_on:
@@ -173,9 +176,10 @@ class FakeRobot(Node):
                 hook = self.joint_hook
                 if hook is not None:
                     hook(js)
+                t_pub = time.time()   # before the publish, as the imu's
                 self.joint_pub.publish(js)
                 if hook is None:
-                    self.last_clean_joint_time = time.time()
+                    self.last_clean_joint_time = t_pub
             if self.cmd is not None and k % 10 == 0:
                 now_ns = self.get_clock().now().nanoseconds
                 cmd.header.stamp = Time(

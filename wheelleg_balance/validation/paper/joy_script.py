@@ -45,7 +45,6 @@ import pathlib
 import signal
 import sys
 import threading
-import time
 from typing import Dict, List, Optional, Sequence, Tuple
 
 import yaml
@@ -270,25 +269,33 @@ def describe(script: JoyScript) -> List[str]:
 
 
 def _node(script: JoyScript, pad: PadMapping, wait_start: bool):
-    """Return the joy_script node, its ``joy`` publisher and the start time (set on ~/start)."""
+    """
+    Return the joy_script node, its ``joy`` publisher, the start time and the script's clock.
+
+    The start time is set on ~/start; the clock [s] counts simulated seconds under use_sim_time
+    (main_job in lockstep).
+    """
     import rclpy
     from sensor_msgs.msg import Joy
     from std_srvs.srv import Trigger
 
+    from ...nodes.clock import seconds
+
     node = rclpy.create_node('joy_script')
     pub = node.create_publisher(Joy, 'joy', 10)
     t0: Dict[str, float] = {}
+    clock = seconds(node)
 
     def on_start(request, response):
         if 'start' not in t0:
-            t0['start'] = time.monotonic()
+            t0['start'] = clock()
             node.get_logger().info('script started')
         response.success, response.message = True, 'started'
         return response
 
     node.create_service(Trigger, '~/start', on_start)
     if not wait_start:
-        t0['start'] = time.monotonic()
+        t0['start'] = clock()
     node.get_logger().info('joy at %.0f Hz, linear axis %d, yaw axis %d, enable button %d, '
                            'turbo button %d; %s' % (
                                pad.rate, pad.axis_linear, pad.axis_yaw, pad.enable_button,
@@ -296,10 +303,10 @@ def _node(script: JoyScript, pad: PadMapping, wait_start: bool):
                                'waiting for ~/start' if wait_start else 'started'))
     for line in describe(script):
         node.get_logger().info(line)
-    return node, pub, t0
+    return node, pub, t0, clock
 
 
-def _publish(node, pub, t0: Dict[str, float], script: JoyScript, pad: PadMapping,
+def _publish(node, pub, t0: Dict[str, float], clock, script: JoyScript, pad: PadMapping,
              stop: threading.Event, exit_at_end: bool) -> None:
     """Publish the pad state at ``pad.rate`` until stopped (or 0.5 s after the end)."""
     import rclpy
@@ -311,10 +318,10 @@ def _publish(node, pub, t0: Dict[str, float], script: JoyScript, pad: PadMapping
     period = 1.0 / pad.rate
     msg = Joy()
     msg.header.frame_id = 'joy'
-    next_send = time.monotonic()
+    next_send = clock()
     last = None
     while not stop.is_set() and rclpy.ok():
-        now = time.monotonic()
+        now = clock()
         if now >= next_send:
             t = now - t0['start'] if 'start' in t0 else -1.0
             if exit_at_end and t > script.end + 0.5:
@@ -329,7 +336,7 @@ def _publish(node, pub, t0: Dict[str, float], script: JoyScript, pad: PadMapping
             next_send += period
             if next_send < now:   # a stall: no burst of stale samples
                 next_send = now + period
-        executor.spin_once(timeout_sec=max(0.0, min(period, next_send - time.monotonic())))
+        executor.spin_once(timeout_sec=max(0.0, min(period, next_send - clock())))
 
 
 def run(script: JoyScript, pad: PadMapping, wait_start: bool, exit_at_end: bool,
@@ -343,9 +350,9 @@ def run(script: JoyScript, pad: PadMapping, wait_start: bool, exit_at_end: bool,
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    node, pub, t0 = _node(script, pad, wait_start)
+    node, pub, t0, clock = _node(script, pad, wait_start)
     try:
-        _publish(node, pub, t0, script, pad, stop, exit_at_end)
+        _publish(node, pub, t0, clock, script, pad, stop, exit_at_end)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:

@@ -113,12 +113,15 @@ def start_nodes(exp: Scenario, folder: pathlib.Path,
         doc = joy_script_doc(exp, teleop_scales(teleop_yaml))
         (folder / 'joy_script.yaml').write_text(yaml.safe_dump(doc, sort_keys=False))
         joy_lines = describe(JoyScript.from_dict(doc))
+        # In lockstep the pad and teleop_node's limits run on sim_node's /clock.
+        sim_clock = ['-p', 'use_sim_time:=true'] if setup.lockstep else []
         procs['teleop_node'] = _start(['wheelleg_balance.nodes.teleop_node', '--ros-args',
-                                       '--params-file', str(teleop_yaml)],
+                                       '--params-file', str(teleop_yaml)] + sim_clock,
                                       folder / 'teleop_node.log')
         procs['joy_script'] = _start(['wheelleg_balance.validation.paper.joy_script',
                                       '--config', str(teleop_yaml), '--script',
-                                      str(folder / 'joy_script.yaml'), '--wait-start'],
+                                      str(folder / 'joy_script.yaml'), '--wait-start',
+                                      '--ros-args'] + sim_clock,
                                      folder / 'joy_script.log')
     return procs, joy_lines
 
