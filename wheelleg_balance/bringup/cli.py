@@ -55,7 +55,7 @@ def default_config() -> pathlib.Path:
 
 
 class RosSide:
-    """bring-up's ROS node: the IMU, the graph (who else runs), sim_node's hand."""
+    """bring-up's ROS node: the IMU, the graph (who else runs), sim_node's hand and clock."""
 
     def __init__(self, args: Optional[List[str]] = None):
         import rclpy
@@ -72,6 +72,9 @@ class RosSide:
         self.node.create_subscription(Imu, 'imu', self._on_imu, qos_profile_sensor_data)
         self.imu_topic = self.node.resolve_topic_name('imu')
         self._hand = self.node.create_publisher(JointState, 'sim_node/hand', 10)
+        from rosgraph_msgs.msg import Clock
+        self.sim_time: Optional[float] = None    # sim_node's /clock [s], None before one came
+        self.node.create_subscription(Clock, '/clock', self._on_clock, 10)
         self._executor = SingleThreadedExecutor()
         self._executor.add_node(self.node)
         self._thread = threading.Thread(target=self._executor.spin, daemon=True)
@@ -86,6 +89,25 @@ class RosSide:
             self.imu_count += 1
             self._samples.append(sample)
             del self._samples[:-2000]
+
+    def _on_clock(self, msg) -> None:
+        self.sim_time = msg.clock.sec + 1e-9 * msg.clock.nanosec
+
+    def wait_sim(self, duration: float) -> None:
+        """
+        Wait ``duration`` seconds of sim_node's time (--sim: the hand's moves and the settling).
+
+        A loaded machine runs the simulation slower than the wall clock; the procedure's waits
+        are the simulated robot's, so they follow its clock (at most 30 times as long in wall
+        time; without a /clock at all, the wall clock's).
+        """
+        start = self.sim_time
+        if start is None:
+            time.sleep(duration)
+            return
+        give_up = time.monotonic() + 30.0 * duration + 5.0
+        while self.sim_time < start + duration and time.monotonic() < give_up:
+            time.sleep(0.01)
 
     def imu(self, duration: float) -> List[ImuSample]:
         """Return the IMU samples of the next ``duration`` seconds."""
@@ -202,8 +224,8 @@ def main(argv: Optional[List[str]] = None) -> int:
                 return 2
             report.say('sim_node is up (CAN udp_multicast %s:%d); the legs hang free for %.0f s'
                        % (group, port, SIM_SETTLE))
-            time.sleep(SIM_SETTLE)
-            operator = simmod.SimOperator(sim_cfg, ros.hand, report.say)
+            ros.wait_sim(SIM_SETTLE)
+            operator = simmod.SimOperator(sim_cfg, ros.hand, report.say, wait=ros.wait_sim)
         else:
             operator = ConsoleOperator(report.say)
         links = (lambda: [c for ch in channels(cfg) for c in check_link(ip_link_json(ch), ch)]) \
@@ -215,7 +237,8 @@ def main(argv: Optional[List[str]] = None) -> int:
             report.add(Check(FAIL, ', '.join(channels(cfg)), 'cannot open the bus: %s' % exc))
             return 2
         session = BringUp(cfg, ios, operator, ros.imu, report, owners=ros.owners, links=links,
-                          imu_topic=ros.imu_topic)
+                          imu_topic=ros.imu_topic,
+                          wait=ros.wait_sim if args.sim else time.sleep)
         try:
             changes = session.run()
         except Refused as exc:

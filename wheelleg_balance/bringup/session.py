@@ -178,7 +178,8 @@ class BringUp:
                  imu: Callable[[float], List[imu_check.ImuSample]], report: Report,
                  owners: Callable[[], List[str]] = lambda: [],
                  links: Callable[[], List[Check]] = lambda: [], settle: float = 0.3,
-                 scan_ids=SCAN_IDS, imu_topic: str = 'imu'):
+                 scan_ids=SCAN_IDS, imu_topic: str = 'imu',
+                 wait: Callable[[float], None] = time.sleep):
         self.cfg = cfg
         self.motors = Motors(cfg, ios)
         self.operator = operator
@@ -187,6 +188,7 @@ class BringUp:
         self.owners = owners
         self.links = links
         self.settle = settle
+        self.wait = wait   # the robot's clock: sim_node's with --sim
         self.scan_ids = scan_ids
         self.imu_topic = imu_topic
         self.found: List[mc.MotorSlot] = []
@@ -291,10 +293,10 @@ class BringUp:
     # ---- 4. by hand ------------------------------------------------------------------------
 
     def _step(self, poller: Poller, step: str, slots, text: str) -> Tuple[dict, dict, dict]:
-        time.sleep(self.settle)
+        self.wait(self.settle)
         before = poller.positions()
         self.operator.ask(step, slots, text)
-        time.sleep(self.settle)
+        self.wait(self.settle)
         after, raw = poller.positions(), poller.reported()
         return before, after, raw
 

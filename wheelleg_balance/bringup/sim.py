@@ -21,7 +21,7 @@ from ..sim.config import SimConfig
 
 #: The hand's moves [rad] and torque limits [N m] per step (joint conventions, sim/hand.py).
 HAND = {'wheel_forward': (1.0, 0.5), 'leg_fold': (-3.0, 4.0), 'leg_stretch': (0.3, 4.0)}
-#: How long the hand takes for a step [s] (sim time runs with the wall clock).
+#: How long the hand takes for a step [s of sim time: ``wait`` follows sim_node's /clock].
 HAND_TIME = 1.5
 
 
@@ -63,16 +63,19 @@ class SimOperator(Operator):
     The simulator's hand as the builder (see the module docstring).
 
     hand(names, positions, efforts): publishes a sensor_msgs/JointState on sim_node's ~/hand
-    (empty names: let go); say: where the moves are told.
+    (empty names: let go); say: where the moves are told; wait(seconds): waits that long on
+    sim_node's clock.
     """
 
     def __init__(self, sim: SimConfig, hand: Callable[[List[str], List[float], List[float]],
                                                       None],
-                 say: Callable[[str], None] = print, hand_time: float = HAND_TIME):
+                 say: Callable[[str], None] = print, hand_time: float = HAND_TIME,
+                 wait: Callable[[float], None] = time.sleep):
         self._names = joint_names(sim)
         self._hand = hand
         self._say = say
         self.hand_time = hand_time
+        self._wait = wait
 
     def ask(self, step: str, slots: Sequence[MotorSlot], text: str) -> None:
         """Tell the step, move the joints with the hand, wait until it is done."""
@@ -82,7 +85,7 @@ class SimOperator(Operator):
         self._say('    [sim] the hand moves %s by %+.2f rad (at most %.1f N m)'
                   % (', '.join(names), move, limit))
         self._hand(names, [move] * len(names), [limit] * len(names))
-        time.sleep(self.hand_time)
+        self._wait(self.hand_time)
 
     def done(self) -> None:
         """Let go."""

@@ -14,6 +14,8 @@ sim_node: the simulated robot (sim/robot_sim.py) in real time, with the robot's 
   mode, clamped to the motor's t_max; one reply per received frame with the true state. Until
   balance_node drives them the hips are limp: the robot starts as after power-up
   (``initial_pose: folded``), legs folded onto their stops, resting on its tail;
+- publishes ``/clock`` (rosgraph_msgs/Clock, the simulated time, 100 Hz) for nodes with
+  ``use_sim_time`` and for ``bringup --sim``, which time themselves on the simulation;
 - subscribes ``~/hand`` (sensor_msgs/JointState): the builder's hand of the bring-up checks
   (``bringup --sim``; sim/hand.py). Each named joint (the joint_states names) is pulled from
   where it is when the message arrives by ``position`` [rad] (its joint convention: wheels
@@ -47,8 +49,7 @@ processes come and go (docs/benchmarks.md, "The 0.33 s stall").
 simulated time, and each tick first waits (at most ``lockstep_timeout``, wall clock) until
 every motor in motor mode has had a frame since the previous publish: the commands balance_node
 computed from that sample. The loop never catches up in bursts: when the wait or the CPU makes
-it late it simply runs slower than real time (``real_time_factor``); ``/clock`` (rosgraph_msgs/Clock,
-100 Hz) carries the simulated time to nodes with ``use_sim_time``. The closed loop is then
+it late it simply runs slower than real time (``real_time_factor``). The closed loop is then
 the same on a loaded machine as on an idle one (docs/simulation.md).
 """
 import sys
@@ -88,7 +89,7 @@ except MissingDependency as missing:
 #: The loop serves every missed deadline until this many periods behind, then restarts its
 #: schedule from now (simulated time follows the wall clock; a resync is counted).
 RESYNC_AFTER = 20
-#: Lockstep: /clock every this many ticks (100 Hz at 500 Hz).
+#: /clock every this many ticks (100 Hz at 500 Hz).
 CLOCK_EVERY = 5
 
 
@@ -152,12 +153,11 @@ class SimNode(Node):
                                                event_callbacks=lean.publisher_events())
         self.gt_pub = self.create_publisher(Float64MultiArray, '~/ground_truth', 10,
                                             event_callbacks=lean.publisher_events())
-        # Lockstep: /clock, so that nodes with use_sim_time (the scripted joystick, teleop_node)
-        # time themselves on the simulation; every CLOCK_EVERY ticks.
+        # /clock, the simulated time, every CLOCK_EVERY ticks: nodes with use_sim_time (the
+        # scripted joystick, teleop_node in lockstep) and bringup --sim time themselves on it.
         self.clock_pub = self.create_publisher(Clock, '/clock', 10,
-                                               event_callbacks=lean.publisher_events()) \
-            if cfg.lockstep else None
-        self._clock = Clock()
+                                               event_callbacks=lean.publisher_events())
+        self._clock_msg = Clock()
         self.create_subscription(JointState, '~/hand', self._on_hand, 10,
                                  event_callbacks=lean.subscription_events())
         self._imu = Imu()
@@ -243,13 +243,11 @@ class SimNode(Node):
     # ---- simulation loop --------------------------------------------------------------------
 
     def _publish(self) -> None:
-        if self.config.lockstep:
-            stamp = Time(nanoseconds=int(round(self.motors.time * 1e9))).to_msg()
-            if self.ticks % CLOCK_EVERY == 0:
-                self._clock.clock = stamp
-                self.clock_pub.publish(self._clock)
-        else:
-            stamp = self.get_clock().now().to_msg()
+        sim_stamp = Time(nanoseconds=int(round(self.motors.time * 1e9))).to_msg()
+        if self.ticks % CLOCK_EVERY == 0:
+            self._clock_msg.clock = sim_stamp
+            self.clock_pub.publish(self._clock_msg)
+        stamp = sim_stamp if self.config.lockstep else self.get_clock().now().to_msg()
         (qx, qy, qz, qw), gyro, acc = self.sim.imu()
         imu = self._imu
         imu.header.stamp = stamp

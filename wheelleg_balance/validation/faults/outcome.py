@@ -14,8 +14,8 @@ from .doubles import FakeMotors, MOTOR_IDS
 from .rig import PERIOD, REACTION_TIME_CHECK, Rig, wait_for
 from ...core.deadline import STALL_THRESHOLD
 
-#: Send-time jitter allowed on top of a tick gap [s]: the tick's own compute time before the
-#: send (a frame goes out a little after its tick starts, by a varying amount).
+#: Send-time jitter allowed on top of a tick gap at least [s]: a frame goes out after its
+#: tick's compute, which the loop reports (compute_max_ms) and which may be longer.
 GAP_JITTER = 0.002
 
 
@@ -91,17 +91,21 @@ def _every_tick(out: Outcome, rig: Rig, t0: float, t1: float) -> None:
     Check that the loop sends its zero torque at every tick it runs within [t0, t1).
 
     The frames' times are their send times (the virtual bus stamps them), so a gap between
-    two frames to a motor is a gap between two ticks: at most one period plus the stall
-    threshold (10 ms), or plus the longest stall the loop itself measured and reported (a
-    stall of the loaded machine is the loop's lateness, counted in its diagnostics, not a
-    tick that sent nothing). A loop that stopped sending in FAULT leaves a gap no stall
+    two frames to a motor is a gap between two ticks' sends: at most one period plus the stall
+    threshold (10 ms) or the longest stall the loop itself measured and reported, plus the
+    longest compute time it reported (a send comes that much after its tick's start). A stall
+    of the loaded machine is the loop's lateness, counted in its diagnostics, not a tick that
+    sent nothing; a loop that stopped sending in FAULT leaves a gap nothing it reports
     explains.
     """
     motors = rig.motors
     # The diagnostics that cover the window (published at the rig's 2 Hz, after it).
     wait_for(lambda: any(t > t1 + 0.05 for t, _ in list(rig.robot.diagnostics)), 2.0)
-    stall = 1e-3 * float(rig.robot.loop_status().get('longest_stall_ms', 'nan'))
-    allowed = PERIOD + max(STALL_THRESHOLD, stall if stall == stall else 0.0) + GAP_JITTER
+    loop = rig.robot.loop_status()
+    stall = 1e-3 * float(loop.get('longest_stall_ms', 'nan'))
+    compute = 1e-3 * float(loop.get('compute_max_ms', 'nan'))
+    allowed = PERIOD + max(STALL_THRESHOLD, stall if stall == stall else 0.0) + \
+        max(GAP_JITTER, compute if compute == compute else 0.0)
     gaps, counts = [], []
     for m in motors.ids:
         times = [t for t, kind, _ in motors.frames(m, t0, t1) if kind == 'torque']
@@ -109,9 +113,11 @@ def _every_tick(out: Outcome, rig: Rig, t0: float, t1: float) -> None:
         gaps.append(max((b - a for a, b in zip(times, times[1:])), default=t1 - t0))
     out.figures['fault_frame_gap_max_ms'] = 1e3 * max(gaps)
     out.figures['loop_longest_stall_ms'] = 1e3 * stall
+    out.figures['loop_compute_max_ms'] = 1e3 * compute
     text = ('FAULT keeps commanding zero torque every tick (no gap between frames over one '
-            "period + the stall threshold or the loop's own longest stall: %.1f ms allowed, "
-            '%.1f ms seen; %d frames)' % (1e3 * allowed, 1e3 * max(gaps), min(counts)))
+            "period + the stall threshold or the loop's own longest stall + its longest "
+            'compute: %.1f ms allowed, %.1f ms seen; %d frames)' % (
+                1e3 * allowed, 1e3 * max(gaps), min(counts)))
     out.check(text,
               max(gaps) <= allowed and min(counts) >= 10)
 
