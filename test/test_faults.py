@@ -209,3 +209,13 @@ def test_fault_latches_until_rearm_even_with_auto_arm(auto_arm_bench, cause):
 @pytest.mark.parametrize('name', ['sigint_shutdown', 'sigterm_shutdown'])
 def test_signal_sends_zero_torque_then_exit_frames(context, name):
     assert_handled(SCENARIOS[name](context))
+
+
+def test_zero_applied_after_counts_from_the_sample_to_lasting_zero_torque():
+    from wheelleg_balance.validation.faults.scenarios import _zero_applied_after
+    truth = [(0.000, 3.0, -3.0), (0.002, 2.0, -2.0), (0.004, 0.0, 0.0), (0.006, 0.5, 0.0),
+             (0.008, 0.0, 0.0), (0.010, 0.0, 0.0)]
+    # Zero from 0.008 s on (the blip at 0.006 s restarts the count).
+    assert _zero_applied_after(truth, 0.002) == pytest.approx(0.006)
+    assert _zero_applied_after(truth, 0.009) == pytest.approx(0.001)
+    assert _zero_applied_after(truth[:4], 0.0) is None

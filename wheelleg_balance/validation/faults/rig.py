@@ -354,16 +354,34 @@ class Rig:
 
 
 class ImuWatch(Node):
-    """Notes the receipt time [s] of the first Imu whose |pitch| exceeds ``angle`` [rad]."""
+    """
+    Notes the first Imu whose |pitch| exceeds ``angle`` [rad]: receipt time and header stamp.
 
-    def __init__(self, context, namespace: str, angle: float = FALL_ANGLE):
+    first_time: its receipt time [s, time.time()]; first_stamp: its header stamp [s] (sim_node's
+    simulated time in lockstep). ``ground_truth=True`` also records sim_node's ~/ground_truth
+    (same namespace) as rows of (sim time [s], tau_left, tau_right [N m], the applied torques).
+    """
+
+    def __init__(self, context, namespace: str, angle: float = FALL_ANGLE,
+                 ground_truth: bool = False):
         super().__init__('imu_watch', namespace=namespace, context=context)
         self.angle = angle
         self.first_time: Optional[float] = None
+        self.first_stamp: Optional[float] = None
+        self.truth: List[Tuple[float, float, float]] = []
         self.create_subscription(Imu, 'imu', self._on_imu, qos_profile_sensor_data)
+        if ground_truth:
+            self.create_subscription(Float64MultiArray, 'sim_node/ground_truth', self._on_truth,
+                                     100)
 
     def _on_imu(self, msg: Imu) -> None:
         o = msg.orientation
         if self.first_time is None and abs(pitch_from_quaternion(o.x, o.y, o.z, o.w)) > \
                 self.angle:
             self.first_time = time.time()
+            self.first_stamp = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+
+    def _on_truth(self, msg: Float64MultiArray) -> None:
+        labels = msg.layout.dim[0].label.split(',')
+        row = dict(zip(labels, msg.data))
+        self.truth.append((row['time'], row['tau_left'], row['tau_right']))

@@ -26,7 +26,7 @@ from .doubles import bus_off, ErrorFrameStorm, FakeMotors, MOTOR_IDS, tx_queue_f
 from .matrices import JOINT_STATES, set_field
 from .outcome import _balancing_since, _torque_before, _torque_flowing, _zero_reaction, Outcome
 from .plants import StaticPlant
-from .rig import (FakeRobot, ImuWatch, Rig, RIG_PARAMS, SLACK, Spinning,
+from .rig import (FakeRobot, ImuWatch, PERIOD, Rig, RIG_PARAMS, SLACK, Spinning,
                   unique_namespace, wait_for)
 from .. import child_env
 from ...core.config import DEFAULTS
@@ -595,12 +595,37 @@ def scenario_sigterm(context) -> Outcome:
 SIM_PUSH = (5.0, 0.1, 600.0)
 
 
+#: The reaction allowed in lockstep [s of simulated time]: the zero torque of the tick that took
+#: the sample is applied by the next physics step and reported at the next tick, one period
+#: later; a tick later would be two.
+SIM_REACTION = 1.5 * PERIOD
+
+
+def _zero_applied_after(truth, t_sample: float) -> Optional[float]:
+    """
+    Return the simulated time [s] from ``t_sample`` until the applied wheel torques are zero.
+
+    truth: rows of (sim time, tau_left, tau_right); zero: within one MIT torque step, in this
+    row and every later one. None when they never are.
+    """
+    rows = [r for r in truth if r[0] >= t_sample - 1e-9]
+    k = len(rows)
+    while k > 0 and abs(rows[k - 1][1]) <= TORQUE_LSB and abs(rows[k - 1][2]) <= TORQUE_LSB:
+        k -= 1
+    if k == len(rows):
+        return None
+    return max(0.0, rows[k][0] - t_sample)
+
+
 def scenario_sim_node_push(context) -> Outcome:
     """
     Push the sim_node robot past the fall angle while balance_node balances it.
 
-    sim_node (MuJoCo, in this process) and balance_node share one virtual CAN bus; auto_arm
-    from the tail; a forward push of 600 N for 0.1 s at 5 s tips the robot past 45 deg.
+    sim_node (MuJoCo, in this process) and balance_node share one virtual CAN bus, in lockstep
+    (sim_node ``lockstep``, balance_node ``clock_source: imu_stamp``: the physics is the same
+    however loaded the machine, and the reaction is measured in simulated time from sim_node's
+    ground truth of the torques applied); auto_arm from the tail; a forward push of 600 N for
+    0.1 s at 5 s tips the robot past 45 deg.
     """
     from ...nodes.sim_node import SimNode
     out = Outcome('push_fall_sim_node', 'sim_node robot pushed forward past the fall angle '
@@ -610,24 +635,27 @@ def scenario_sim_node_push(context) -> Outcome:
     start, duration, force = SIM_PUSH
     namespace = unique_namespace()
     sim = SimNode(context=context, namespace=namespace, parameter_overrides=[
-        Parameter('can.channel', value=channel), Parameter('ground_truth_rate', value=0.0),
+        Parameter('can.channel', value=channel), Parameter('lockstep', value=True),
+        Parameter('ground_truth_rate', value=1.0 / PERIOD),
         Parameter('pushes', value=[start, duration, force, 0.0])])
     overrides = [Parameter(k, value=v) for k, v in
-                 dict(RIG_PARAMS, auto_arm=True, right_wheel_direction=-1).items()]
+                 dict(RIG_PARAMS, auto_arm=True, right_wheel_direction=-1,
+                      clock_source='imu_stamp').items()]
     node = BalanceNode(bus=VirtualBus(channel=channel), context=context, namespace=namespace,
                        parameter_overrides=overrides)
     recorder = FakeMotors(can.Bus(interface='virtual', channel=channel), answer=False)
-    watch = ImuWatch(context, namespace)
+    watch = ImuWatch(context, namespace, ground_truth=True)
     spinning = Spinning(context, (sim, node, watch))
     sim.start()
     try:
-        up = wait_for(lambda: node.status['mode'] == 'BALANCING', 10.0)
+        # Wall-clock limits of a lockstep run on a loaded machine: 10 times the simulated time.
+        up = wait_for(lambda: node.status['mode'] == 'BALANCING', 10.0 * start)
         out.check('auto_arm balances from the tail', up)
         out.check('upright before the push', up and wait_for(
-            lambda: abs(sim.sim.ground_truth()['theta']) < 0.15, 5.0, step=0.05))
-        pushed = wait_for(lambda: sim.sim.time > start + duration, 15.0, step=0.05)
+            lambda: abs(sim.sim.ground_truth()['theta']) < 0.15, 10.0 * start, step=0.05))
+        pushed = wait_for(lambda: sim.sim.time > start + duration, 10.0 * start, step=0.05)
         out.check('the push happened', pushed)
-        fault = wait_for(lambda: node.status['mode'] == 'FAULT', 3.0)
+        fault = wait_for(lambda: node.status['mode'] == 'FAULT', 30.0)
         t_seen = time.time()   # the recorder's and the watch's clock
         out.check('FAULT', fault)
         out.figures['fault_codes'] = ','.join(code for code, _ in node.status['faults'])
@@ -641,7 +669,8 @@ def scenario_sim_node_push(context) -> Outcome:
         out.check('fault code fall (or, while catching it, the wheels past max_wheel_velocity '
                   'or spinning free)',
                   fault and (cut or any(code == 'fall' for code, _ in node.status['faults'])))
-        time.sleep(3.0)
+        t_then = sim.sim.time
+        wait_for(lambda: sim.sim.time > t_then + 3.0, 30.0, step=0.05)
         t_fall = watch.first_time
         out.check('the IMU showed |pitch| > 45 deg, or the wheels were cut at their speed limit '
                   'before', t_fall is not None or cut)
@@ -650,11 +679,14 @@ def scenario_sim_node_push(context) -> Outcome:
             out.check('zero torque on the bus from the FAULT on', t_zero is not None
                       and t_zero <= t_seen + SLACK)
         if t_fall is not None:
-            t_zero = recorder.zero_since(t_fall)
-            out.time_to_zero = None if t_zero is None else max(0.0, t_zero - t_fall)
-            out.check('zero torque within %.0f ms of the first sample past the fall angle'
-                      % (1e3 * SLACK), out.time_to_zero is not None
-                      and out.time_to_zero <= SLACK)
+            # In simulated time: the tick of the sample past the fall angle sends zero torque,
+            # which the physics applies from its next step (reported one tick later).
+            out.time_to_zero = _zero_applied_after(watch.truth, watch.first_stamp)
+            out.check('zero torque applied within %.0f ms of simulated time after the first '
+                      'sample past the fall angle' % (1e3 * SIM_REACTION),
+                      out.time_to_zero is not None and out.time_to_zero <= SIM_REACTION)
+            out.check('zero torque on the bus after the first sample past the fall angle',
+                      recorder.zero_since(t_fall) is not None)
             # Within 1 s: a cut at the wheel-speed limit may come well before the fall angle.
             out.check('non-zero torque before the fall',
                       any(abs(t) > 0.1 for t in recorder.torques(1, t_fall - 1.0, t_fall)))
