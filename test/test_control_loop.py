@@ -324,3 +324,44 @@ def test_the_control_loop_is_pinned_when_allowed(make_node):
     assert wait_for(lambda: node.status is not None, 2.0)
     assert 'pinned to CPU %d' % cpu in node.status['realtime']
     assert os.sched_getaffinity(node.control_task_id) == {cpu}
+
+
+# ------------------------------------------------------- clock_source imu_stamp (lockstep)
+
+def test_on_imu_stamps_the_loop_ticks_once_per_sample_at_its_stamp():
+    """A tick per new IMU stamp, at the stamp; the sample's receipt time is its stamp."""
+    import threading
+    from wheelleg_balance.core.config import BalanceConfig
+    from wheelleg_balance.core.schema import with_changes
+    from wheelleg_balance.core.sensors import ImuSample
+    from wheelleg_balance.nodes import control_link as L
+    from wheelleg_balance.nodes.control_process import ControlRunner
+
+    cfg = with_changes(BalanceConfig(), {'clock_source': 'imu_stamp'})
+    ros_end, loop_end = L.socket_pair()
+    intake_end, loop_sensor_end = L.socket_pair()
+    runner = ControlRunner(cfg, VirtualBus(channel='wlb-%s' % uuid.uuid4().hex),
+                           L.Link(loop_end), L.Link(loop_sensor_end), realtime_options=False)
+    thread = threading.Thread(target=runner.run, daemon=True)
+    thread.start()
+    sensors = L.Link(intake_end)
+
+    def sample(k):
+        # Receipt time 0 (the intake's monotonic clock): the loop must not use it.
+        return ImuSample(0.0, 1000, k * PERIOD_NS, 0.0, 0.0, 0.0, 1.0, True, 0.0, 0.0, 0.0,
+                         0.0, 0.0, 9.81)
+    try:
+        for k in range(1, 31):
+            sensors.send_imu(sample(k))
+            assert wait_for(lambda: runner.ticks >= k, 5.0), k   # one at a time, as lockstep
+        assert runner.now == pytest.approx(1000.06)
+        assert runner.loop.imu.time == pytest.approx(1000.06)
+        sensors.send_imu(sample(30))          # the same stamp again: time stands, no tick
+        assert wait_for(lambda: runner.stamps_not_advancing == 1, 5.0)
+        time.sleep(0.1)                       # wall time passes: no tick without a sample
+        assert runner.ticks == 30
+    finally:
+        runner.stop()
+        thread.join(5.0)
+        L.Link(ros_end).close()
+    assert not thread.is_alive()

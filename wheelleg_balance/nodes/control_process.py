@@ -26,6 +26,7 @@ only slower (docs/simulation.md). Never on a robot: a silent IMU would stop the 
 import argparse
 from array import array
 import gc
+import math
 import signal
 import sys
 import time
@@ -210,15 +211,18 @@ class ControlRunner:
     def _run_on_stamps(self) -> None:
         """Tick at the stamp of each newest IMU sample (clock_source imu_stamp)."""
         link = self.sensor_link if self.sensor_link is not None else self.link
+        # The status goes out on the wall clock here (the ROS side judges the loop alive by
+        # its age), also before the first sample; _step adds one on a mode change.
+        self._status_due = math.inf
         status_due = time.monotonic()
         while not self.timer.stopped:
             link.wait_readable(IDLE_WAKE)
             self._drain_link()
+            if time.monotonic() >= status_due:
+                status_due = time.monotonic() + STATUS_PERIOD
+                self.link.send_object(L.STATUS, self.status(self.now))
             inputs = self.inputs
             if not inputs.imu:
-                if time.monotonic() >= status_due:   # no sample yet: still say how it goes
-                    status_due = time.monotonic() + STATUS_PERIOD
-                    self.link.send_object(L.STATUS, self.status(self.now))
                 continue
             newest = inputs.imu[-1]
             now = newest.stamp_sec + 1e-9 * newest.stamp_nanosec
@@ -265,7 +269,8 @@ class ControlRunner:
         mode = self.loop.mode
         if now >= self._status_due or mode is not self._last_mode:
             self._last_mode = mode
-            self._status_due = now + STATUS_PERIOD
+            if not self.on_stamps:   # on stamps the wall clock times them (_run_on_stamps)
+                self._status_due = now + STATUS_PERIOD
             self.link.send_object(L.STATUS, self.status(now))
 
     def _answer_arm(self, reply) -> None:
