@@ -591,3 +591,16 @@ def test_a_kick_before_balancing_fails_the_push_run_instead_of_crashing():
         assert _bound(res, 'recovers from each kick') == table.BY_NAME[
             'push'].main_job.criterion('recovers from each kick').unmet['late']
         assert res['metrics']['kick_times_s'][0] == pytest.approx(4.0 - shift, abs=0.011)
+
+
+def test_sim_node_loop_statistics_read_the_lockstep_figures(tmp_path):
+    from wheelleg_balance.validation.paper.main_job import orchestrate, report
+    log = tmp_path / 'sim_node.log'
+    log.write_text('[INFO] ...\n[sim_node] stopped after 5185 ticks (71 late, 2971 resyncs), '
+                   '25611 CAN frames, real-time factor 0.68, 2 lockstep timeouts\n')
+    st = orchestrate.sim_stats(log)
+    assert (st['ticks'], st['late_ticks'], st['resyncs']) == (5185, 71, 2971)
+    assert (st['real_time_factor'], st['lockstep_timeouts']) == (0.68, 2)
+    text = report.timing_text({'sim_node_loop': st, 'clock': 'lockstep'})
+    assert '0.68 x real time' in text and '2 lockstep timeouts' in text
+    assert 'late on 1 %' in report.timing_text({'sim_node_loop': st, 'clock': 'wall'})

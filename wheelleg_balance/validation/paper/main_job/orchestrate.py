@@ -248,14 +248,24 @@ def play(exp: Scenario, rec: Recorder, procs: Dict[str, subprocess.Popen], durat
 
 
 def sim_stats(log: pathlib.Path) -> Dict[str, float]:
-    """sim_node's loop statistics from its last log line: ticks, late ticks, resyncs."""
-    found = re.search(r'stopped after (\d+) ticks \((\d+) late, (\d+) resyncs\)',
-                      log.read_text(errors='replace'))
+    """
+    sim_node's loop statistics from its last log line.
+
+    ticks, late ticks, resyncs, late_share; and where printed the real-time factor (simulated
+    over wall time) and the lockstep timeouts (ticks that stepped without their commands).
+    """
+    text = log.read_text(errors='replace')
+    found = re.search(r'stopped after (\d+) ticks \((\d+) late, (\d+) resyncs\)', text)
     if not found:
         return {}
     ticks, late, resyncs = (int(v) for v in found.groups())
-    return {'ticks': ticks, 'late_ticks': late, 'resyncs': resyncs,
-            'late_share': late / ticks if ticks else 0.0}
+    out = {'ticks': ticks, 'late_ticks': late, 'resyncs': resyncs,
+           'late_share': late / ticks if ticks else 0.0}
+    more = re.search(r'real-time factor ([0-9.]+|nan), (\d+) lockstep timeouts', text)
+    if more:
+        out['real_time_factor'] = float(more.group(1))
+        out['lockstep_timeouts'] = int(more.group(2))
+    return out
 
 
 def timing_disturbed(sim_loop: Dict[str, float], lag: float) -> bool:
@@ -306,10 +316,15 @@ def run_experiment(exp: Scenario, rec: Recorder, setup: RunSetup, log: Progress)
     result['folder'] = exp.name
     result['mcap_file'] = '%s/%s.mcap' % (exp.name, exp.name) if mcap is not None else None
     result['sim_node_loop'] = sim_stats(folder / 'sim_node.log')
+    result['clock'] = 'lockstep' if setup.lockstep else 'wall'
     result['balance_node_loop'] = dict(rec.loop)
     lag = trace.sim_lag() if trace is not None else 0.0
     result['after_stop'] = [f for f in rec.faults if f not in faults]
-    result['timing_disturbed'] = timing_disturbed(result['sim_node_loop'], lag)
+    # In lockstep a slow machine only slows the run (sim_lag, late ticks); a step without its
+    # commands is the one disturbance, and it is reported.
+    result['timing_disturbed'] = \
+        result['sim_node_loop'].get('lockstep_timeouts', 0) > 0 if setup.lockstep else \
+        timing_disturbed(result['sim_node_loop'], lag)
     if trace is not None:
         result['sim_lag_s'] = lag
         plot(exp, trace, folder / ('%s.png' % exp.name), result)

@@ -20,6 +20,11 @@ def timing_text(r: dict) -> str:
     st = r.get('sim_node_loop') or {}
     if not st:
         return 'no sim_node loop statistics'
+    if 'lockstep_timeouts' in st and r.get('clock') == 'lockstep':
+        # Lateness only slows a lockstep run down; what could disturb it is a step taken
+        # without its commands.
+        return 'sim_node in lockstep: %d ticks at %.2f x real time, %d lockstep timeouts' % (
+            st['ticks'], st['real_time_factor'], st['lockstep_timeouts'])
     return 'sim_node late on %.0f %% of %d ticks, %d resyncs' % (
         100.0 * st['late_share'], st['ticks'], st['resyncs'])
 
@@ -100,7 +105,7 @@ def _section(r: dict, has_fig3: bool) -> List[str]:
                   '![fig3](fig3_startup.png)', '']
     lines.append('- real time: %s%s; balance_node: %s.' % (
         timing_text(r), ', sim time %.2f s behind the wall clock' % r['sim_lag_s']
-        if r.get('sim_lag_s', 0.0) > 0.2 else '', ', '.join(
+        if r.get('sim_lag_s', 0.0) > 0.2 and r.get('clock') != 'lockstep' else '', ', '.join(
             '%s %s' % kv for kv in sorted(r.get('balance_node_loop', {}).items())) or '-'))
     for d in r.get('discarded_attempts', []):
         lines.append('- an earlier attempt was discarded: %s' % d)
