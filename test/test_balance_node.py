@@ -39,6 +39,7 @@ from wheelleg_balance.core.can_budget import frame_bits
 from wheelleg_balance.core.kinematics import FiveBarLeg
 from wheelleg_balance.core.protocols.base import Frame
 from wheelleg_balance.nodes.balance_node import BalanceNode
+from wheelleg_balance.nodes.can_io import open_bus
 from wheelleg_balance.nodes.control_process import MAX_CATCH_UP
 from wheelleg_balance.sim.motor_emulator import DjiC620Emulator, MitMotorBank
 # Test plumbing only (polling, spinning); frames are still decoded here, independently.
@@ -281,8 +282,8 @@ class Rig:
         else:
             group, port = udp_address()
             bus = None
-            self.motors = FakeMotors(can.Bus(interface='udp_multicast', channel=group,
-                                             port=port), protocol=motor_protocol)
+            self.motors = FakeMotors(open_bus('udp_multicast', group, port),
+                                     protocol=motor_protocol)
             params.update({'can.interface': 'udp_multicast', 'can.channel': group,
                            'can.udp_port': port})
         self.node = BalanceNode(bus=bus, context=context, parameter_overrides=[
@@ -630,7 +631,7 @@ def _udp_frames(bus, frames, stop):
 def test_signal_sends_zero_torque_then_exit_frames(context, signum):
     group = '239.74.163.%d' % (100 + os.getpid() % 150)
     port = 47000 + os.getpid() % 2000 + 2 * int(signum)
-    motor_bus = can.Bus(interface='udp_multicast', channel=group, port=port)
+    motor_bus = open_bus('udp_multicast', group, port)
     motors = FakeMotors(motor_bus)
     robot = Robot(context)
     spinning = Spinning(context, (robot,))

@@ -365,3 +365,20 @@ def test_on_imu_stamps_the_loop_ticks_once_per_sample_at_its_stamp():
         thread.join(5.0)
         L.Link(ros_end).close()
     assert not thread.is_alive()
+
+
+def test_the_udp_multicast_test_bus_never_leaves_the_machine():
+    """TTL 0: the frames reach this host's sockets only, and they do reach them."""
+    import socket
+    from wheelleg_balance.nodes.can_io import open_bus
+    group, port = '239.74.250.%d' % (1 + os.getpid() % 200), 46000 + os.getpid() % 2000
+    a, b = open_bus('udp_multicast', group, port), open_bus('udp_multicast', group, port)
+    try:
+        ttl = a._multicast._socket.getsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL)
+        assert ttl == 0
+        a.send(can.Message(arbitration_id=7, data=b'\x01' * 8, is_extended_id=False))
+        got = b.recv(2.0)
+        assert got is not None and got.arbitration_id == 7
+    finally:
+        a.shutdown()
+        b.shutdown()

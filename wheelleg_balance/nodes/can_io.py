@@ -21,6 +21,10 @@ from ..core.can_budget import frame_bits
 from ..core.protocols.base import Frame
 
 
+#: IP_MULTICAST_TTL of the udp_multicast test bus: 0, this host only.
+UDP_HOP_LIMIT = 0
+
+
 def open_bus(interface: str, channel: str, udp_port: int = 43113) -> can.BusABC:
     """
     Open the bus with python-can.
@@ -28,9 +32,12 @@ def open_bus(interface: str, channel: str, udp_port: int = 43113) -> can.BusABC:
     socketcan on the robot (bitrate is set with `ip link`, 1 Mbit/s), ``virtual`` in one
     process, ``udp_multicast`` between processes (channel = multicast group; udp_port keeps
     concurrent test runs apart, since a socket bound to the port sees every joined group).
+    The udp_multicast test bus never leaves the machine: hop limit (TTL) 0, so its frames
+    reach only this host's sockets (python-can's default, 1, would put them on the LAN).
     """
     if interface == 'udp_multicast':
-        return can.Bus(interface=interface, channel=channel, port=udp_port)
+        return can.Bus(interface=interface, channel=channel, port=udp_port,
+                       hop_limit=UDP_HOP_LIMIT)
     return can.Bus(interface=interface, channel=channel)
 
 

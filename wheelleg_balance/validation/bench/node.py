@@ -200,10 +200,10 @@ class MotorBus(threading.Thread):
                  motor_ids: Sequence[int] = WHEEL_IDS, bus=None, priority: int = 0):
         super().__init__(name='bench_motors', daemon=True)
         import can
+        from ...nodes.can_io import open_bus
         self._can = can
         self.priority = priority
-        self.bus = bus if bus is not None else can.Bus(interface='udp_multicast',
-                                                       channel=channel, port=port)
+        self.bus = bus if bus is not None else open_bus('udp_multicast', channel, port)
         self._inode = self._grow_receive_buffer()
         self._drops = -1
         self.motors = MitMotorBank(motor_ids, DIRECTIONS)

@@ -31,6 +31,7 @@ from .rig import (FakeRobot, ImuWatch, PERIOD, Rig, RIG_PARAMS, SLACK, Spinning,
 from .. import child_env
 from ...core.config import DEFAULTS
 from ...nodes.balance_node import BalanceNode
+from ...nodes.can_io import open_bus
 
 
 def _on_armed_rig(context, out: Outcome, run: Callable[[Rig], None], **rig_args) -> Outcome:
@@ -527,7 +528,7 @@ def _signal_scenario(context, sig: int) -> Outcome:
     pid = os.getpid()
     group = '239.74.163.%d' % (1 + (pid + sig) % 99)
     port = 45000 + (pid + 7 * sig) % 2000
-    motors = FakeMotors(can.Bus(interface='udp_multicast', channel=group, port=port))
+    motors = FakeMotors(open_bus('udp_multicast', group, port))
     namespace = unique_namespace()
     robot = FakeRobot(context, StaticPlant(), motors, namespace)
     spinning = Spinning(context, (robot,))
