@@ -175,38 +175,38 @@ class ControlRunner:
     # ------------------------------------------------------------------------------ tick
 
     def _drain_link(self) -> None:
-        inputs = self.inputs
-        sensors = self.sensor_link
-        if sensors is not None:
-            for tag, payload in sensors.receive():
-                if tag == L.IMU:
-                    inputs.imu.append(payload)
-                elif tag == L.JOINTS:
-                    inputs.joints.append(payload)
-                elif tag == L.READY:
-                    self.intake_ready = True
-                    self.link.send_object(L.EVENT, ('info', '%s ready' % payload))
-        for tag, payload in self.link.receive():
-            if tag == L.IMU:
-                inputs.imu.append(payload)
-            elif tag == L.JOINTS:
-                inputs.joints.append(payload)
-            elif tag == L.CMD_VEL:
-                inputs.cmd_vel = payload
-            elif tag == L.CMD_HEIGHT:
-                inputs.cmd_height = payload
-            elif tag == L.ESTOP:
-                inputs.estop = True
-            elif tag == L.ARM:
-                request_id, arm = payload
-                self._arm_ids.append(request_id)
-                inputs.arm = bool(arm)
-            elif tag == L.PARAMS:
-                inputs.params = {**inputs.params, **payload}
-            elif tag == L.STOP:
-                self.timer.stop()
+        # The intake's samples first, then the ROS side's messages (it may carry samples too).
+        for link in (self.sensor_link, self.link):
+            if link is not None:
+                for tag, payload in link.receive():
+                    self._take(tag, payload)
         if self.link.closed:
             self.timer.stop()  # the ROS side is gone: end with zero torque
+
+    def _take(self, tag: bytes, payload) -> None:
+        """Put one message of a link into the tick's inputs (or act on it)."""
+        inputs = self.inputs
+        if tag == L.IMU:
+            inputs.imu.append(payload)
+        elif tag == L.JOINTS:
+            inputs.joints.append(payload)
+        elif tag == L.CMD_VEL:
+            inputs.cmd_vel = payload
+        elif tag == L.CMD_HEIGHT:
+            inputs.cmd_height = payload
+        elif tag == L.ESTOP:
+            inputs.estop = True
+        elif tag == L.ARM:
+            request_id, arm = payload
+            self._arm_ids.append(request_id)
+            inputs.arm = bool(arm)
+        elif tag == L.PARAMS:
+            inputs.params = {**inputs.params, **payload}
+        elif tag == L.STOP:
+            self.timer.stop()
+        elif tag == L.READY:
+            self.intake_ready = True
+            self.link.send_object(L.EVENT, ('info', '%s ready' % payload))
 
     def _run_on_stamps(self) -> None:
         """Tick at the stamp of each newest IMU sample (clock_source imu_stamp)."""
