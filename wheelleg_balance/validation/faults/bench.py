@@ -212,11 +212,11 @@ class LoopBench:
         """Hand an emergency stop to the next tick (zero torque, exit: no sit-down)."""
         self.inputs.estop = True
 
-    def rearm(self) -> None:
-        """Stop, feed nominal samples and arm again: a fresh start for the next case."""
+    def rearm(self, imu: Optional[Imu] = None, joints: Optional[JointState] = None) -> None:
+        """Stop, feed samples (nominal ones when None) and arm again: a fresh start."""
         self.estop()
         self.tick()
-        self.feed()
+        self.feed(imu, joints)
         req = self.request(True)
         self.tick()
         if not req.success:
