@@ -36,6 +36,7 @@ setup(
             'soak = wheelleg_balance.validation.bench.soak:main',
             'main_job = wheelleg_balance.validation.paper.main_job.cli:main',
             'fault_report = wheelleg_balance.validation.faults.report:main',
+            'margins_report = wheelleg_balance.validation.paper.margins_report:main',
             'bringup = wheelleg_balance.bringup.cli:main',
         ],
     },
