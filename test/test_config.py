@@ -58,6 +58,21 @@ def test_config_file_section_matches_the_schema(name, node, body):
     assert check(cfg) == [], (name, check(cfg))
 
 
+def test_the_robot_file_states_the_defaults():
+    """
+    Check that config/balance.yaml, the robot's file, sets each value to its default.
+
+    The file says it documents the defaults. It once held max_wheel_velocity 200 rad/s against
+    the default's 45, four times what an MIT reply can report: the free-wheel rule never fired.
+    """
+    body = yaml.safe_load((REPO / 'config' / 'balance.yaml').read_text())['balance_node']
+    defaults = to_flat(DEFAULTS)
+    differ = {k: (v, defaults[k]) for k, v in flatten_yaml(body['ros__parameters']).items()
+              if v != defaults[k]}
+    assert not differ, 'config/balance.yaml differs from the defaults (file, default): %s' % (
+        differ,)
+
+
 @pytest.mark.parametrize('cls', list(NODE_CONFIGS.values()))
 def test_every_parameter_is_documented_and_has_a_valid_default(cls):
     for s in specs(cls):

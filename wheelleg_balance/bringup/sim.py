@@ -47,6 +47,7 @@ def balance_config(sim: SimConfig) -> BalanceConfig:
         'legs.directions': list(legs.directions), 'legs.offsets': list(legs.offsets),
         'legs.can.channel': legs.can_channel, 'legs.homing': 'set_zero',
         'imu_timeout': 0.5, 'joint_state_timeout': 0.5, 'motor_timeout': 0.5,
+        'watchdog_timeout': 0.5,
     })
 
 

@@ -107,6 +107,9 @@ class TickInputs:
     cmd_vel, cmd_height: the newest command or None; arm: True / False for an operator's arm /
     disarm request, None for none; estop: an emergency stop (zero torque and exit motor mode at
     once, no sit-down); params: parameter changes {name: value}, already validated.
+    guarded: a state, not an event (``clear`` leaves it): False while what guards the process
+    (balance_node's watchdog, nodes/watchdog.py) is not watching: arming is refused and
+    auto_arm waits.
     """
 
     imu: List[ImuSample] = field(default_factory=list)
@@ -117,6 +120,7 @@ class TickInputs:
     arm: Optional[bool] = None
     estop: bool = False
     params: Dict[str, Any] = field(default_factory=dict)
+    guarded: bool = True
 
     def clear(self) -> None:
         """Empty every input (the lists are reused)."""
@@ -209,6 +213,23 @@ def build_protocol(cfg: BalanceConfig) -> MotorProtocol:
         return make_protocol('mit', **can.mit.codec_ranges())
     return make_protocol(can.protocol, torque_constant=can.dji.torque_constant,
                          gear_ratio=can.dji.gear_ratio, current_limit=can.dji.current_limit)
+
+
+def all_stop_frames(cfg: BalanceConfig) -> Tuple[List[Frame], List[Frame]]:
+    """
+    Return zero torque + exit motor mode for every motor of ``cfg``: (the wheels', the hips').
+
+    What the loop sends at start-up and shutdown (BalanceLoop.stop_frames), built from the
+    configuration alone for the watchdog (nodes/watchdog.py), which has no loop.
+    """
+    wheels = build_protocol(cfg)
+    frames = wheels.zero_torque_frames(
+        (cfg.can.left_motor_id, cfg.can.right_motor_id)) + wheels.disable_frames(
+        (cfg.can.left_motor_id, cfg.can.right_motor_id))
+    if not cfg.legs.driven:
+        return frames, []
+    hips, ids = MitProtocol(**cfg.legs.mit.codec_ranges()), tuple(cfg.legs.motor_ids)
+    return frames, hips.zero_torque_frames(ids) + hips.disable_frames(ids)
 
 
 def safety_limits(cfg: BalanceConfig) -> SafetyLimits:
@@ -475,9 +496,14 @@ class BalanceLoop:
                 r.events.append(('warn', 'emergency stop: zero torque, motors to rest'))
         elif inputs.arm is not None:
             self._auto_arm = False  # the operator decides from now on
-            self._handle_arm(inputs.arm, now, s)
+            if inputs.arm and not inputs.guarded:
+                self._pending_reply = ('refused', False, 'arming refused: the watchdog is not '
+                                       'watching the control loop yet')
+            else:
+                self._handle_arm(inputs.arm, now, s)
             self._lifted = self._lifted and sup.mode not in COMMANDING
-        elif self._auto_arm and sup.mode is Mode.DISARMED and self._can_arm(now, s):
+        elif self._auto_arm and inputs.guarded and sup.mode is Mode.DISARMED \
+                and self._can_arm(now, s):
             self._auto_arm = False  # at most once per start, whatever the outcome
             self._handle_arm(True, now, s)
             r.events.append(('info', 'auto_arm: %s' % self._pending_reply[2]))
@@ -1013,8 +1039,7 @@ class BalanceLoop:
         """
         self.supervisor.disarm()
         self.sit = None
-        return (self.motors.stop_frames(),
-                self.legs.motors.stop_frames() if self.legs is not None else [])
+        return all_stop_frames(self.cfg)
 
     # ------------------------------------------------------------------------- publishing
 

@@ -153,6 +153,10 @@ class SafetyConfig:
                                  'reply [s]', 0.004, 2.0)
     cmd_vel_timeout: float = param(0.5, 'cmd_vel age after which the references ramp to zero '
                                    '[s] (not a fault)', 0.01, 60.0)
+    watchdog_timeout: float = param(0.1, 'the watchdog (a process of its own) kills a control '
+                                    'loop that commands the motors but has not run for this '
+                                    'long, and sends zero torque and exit-motor-mode to every '
+                                    'motor [s]', 0.01, 5.0, read_only=RO)
     lift_wheel_inertia: float = param(0.0075, 'lifted check: one wheel with its rotor, '
                                       'inertia about the axle [kg m^2] (a 1.5 kg, 0.1 m disc)',
                                       1e-5, 1.0, read_only=RO)

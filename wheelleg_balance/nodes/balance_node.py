@@ -5,7 +5,8 @@ The tick itself is core/balance_loop.py; it runs in a control process of its own
 (nodes/control_process.py) that owns the CAN bus, so nothing this process does (the rclpy
 executor, parameter and service calls, DDS discovery of other processes) can delay it
 (docs/benchmarks.md). ``imu`` and ``joint_states`` reach it from a sensor intake process that
-has nothing but the two subscriptions (nodes/sensor_intake.py). This node is the shell around
+has nothing but the two subscriptions (nodes/sensor_intake.py); a watchdog process stops the
+motors if the control process stalls or dies (nodes/watchdog.py). This node is the shell around
 them:
 
 - parameters from the typed configuration (core/config.py), validated together, forwarded to
@@ -24,12 +25,13 @@ explicit re-arm or disarm. See docs/balance_node.md.
 import gc
 import itertools
 import math
+import os
 import signal
 import subprocess
 import sys
 import threading
 import time
-from typing import Dict, Optional
+from typing import Callable, Dict, Optional
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TwistStamped
@@ -43,7 +45,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension
 from std_srvs.srv import SetBool, Trigger
 
-from . import control_link as L, lean, sensor_intake
+from . import control_link as L, lean, sensor_intake, watchdog
 from .control_process import ControlRunner, PUBLISH_ODOM, PUBLISH_STATE
 from .diagnostics import diagnostic_array
 from .params import load, ParameterGuard
@@ -125,10 +127,13 @@ class BalanceNode(Node):
         self.link = L.Link(ros_end)
         self._child: Optional[subprocess.Popen] = None
         self._intake: Optional[subprocess.Popen] = None
+        self._watchdog: Optional[subprocess.Popen] = None
+        self.heartbeat: Optional[watchdog.Heartbeat] = None
         self._runner: Optional[ControlRunner] = None
         self._runner_thread: Optional[threading.Thread] = None
         self._reader = threading.Thread(target=self._read_link, name='balance_link',
                                         daemon=True)
+        _on_shutdown_signal(self.stop_loop)
         try:
             self._start_control(bus, loop_end, loop_sensor_end)
             self._start_intake(intake_end)
@@ -143,6 +148,7 @@ class BalanceNode(Node):
             if not (self._status or {}).get('intake_ready'):
                 raise RuntimeError('sensor intake did not start (exit code %s)'
                                    % self._intake.poll())
+            self._wait_watchdog(end)
         except BaseException:
             # Whatever stopped the start (an error, a signal), the motors end at zero torque.
             self.shutdown()
@@ -182,14 +188,29 @@ class BalanceNode(Node):
                                                    name='balance_control', daemon=True)
             self._runner_thread.start()
             return
-        fds = (L.inheritable(loop_end), L.inheritable(sensor_end))
+        self.heartbeat = watchdog.Heartbeat()
+        fds = (L.inheritable(loop_end), L.inheritable(sensor_end), self.heartbeat.fd)
         self._child = subprocess.Popen(
             [sys.executable, '-m', 'wheelleg_balance.nodes.control_process', '--fd',
-             str(fds[0]), '--sensor-fd', str(fds[1])], pass_fds=fds)
+             str(fds[0]), '--sensor-fd', str(fds[1]), '--heartbeat-fd', str(fds[2])],
+            pass_fds=fds)
         # The child has its copies; ours would hide the child's end-of-file.
         loop_end.close()
         sensor_end.close()
         self.link.send_object(L.PARAMS, to_flat(self.config))
+        self._watchdog = subprocess.Popen(
+            watchdog.command(self.heartbeat.fd, self._child.pid, to_flat(self.config)),
+            pass_fds=(self.heartbeat.fd,))
+
+    def _wait_watchdog(self, end: float) -> None:
+        """Wait until the watchdog watches (no arming before); none with an in-process bus."""
+        if self._watchdog is None:
+            return
+        while self.heartbeat.state()[0] == watchdog.STARTING and time.monotonic() < end \
+                and self._watchdog.poll() is None:
+            time.sleep(0.02)
+        if self.heartbeat.state()[0] != watchdog.WATCHING:
+            raise RuntimeError('watchdog did not start (exit code %s)' % self._watchdog.poll())
 
     def _start_intake(self, intake_end) -> None:
         fd = L.inheritable(intake_end)
@@ -349,7 +370,16 @@ class BalanceNode(Node):
     def diagnostics(self, now: float):
         """Build the DiagnosticArray of the newest status of the control loop."""
         return diagnostic_array(self._status, self._hardware_id, now, ALIVE_LIMIT,
-                                self.get_clock().now().to_msg())
+                                self.get_clock().now().to_msg(), self.watchdog_state())
+
+    def watchdog_state(self) -> Optional[dict]:
+        """Return the watchdog's state (Heartbeat.describe); None with an in-process bus."""
+        if self.heartbeat is None or self._watchdog is None:
+            return None
+        out = self.heartbeat.describe()
+        out['running'] = self._watchdog.poll() is None
+        out['timeout'] = self.config.safety.watchdog_timeout
+        return out
 
     # ------------------------------------------------------------------------------ shutdown
 
@@ -358,9 +388,9 @@ class BalanceNode(Node):
         if self._closing.is_set():
             return
         self._closing.set()
+        self.link.send_object(L.STOP, None)   # first: the intake takes a while to end
         if self._intake is not None:
             end_process(self._intake)
-        self.link.send_object(L.STOP, None)
         if self._runner is not None:
             self._runner.stop()
             if self._runner_thread is not None:
@@ -368,9 +398,18 @@ class BalanceNode(Node):
             self._runner.shutdown()
         if self._child is not None:
             _end_child(self._child, self.link)
+        if self._watchdog is not None:   # it ends by itself once the loop has ended
+            end_process(self._watchdog, timeout=1.0)
         if self._reader.is_alive():
             self._reader.join(timeout=1.0)
         self.link.close()
+        if self.heartbeat is not None:
+            self.heartbeat.close()
+            os.close(self.heartbeat.fd)
+
+    def stop_loop(self) -> None:
+        """Tell the control loop to stop now: zero torque, exit frames (from a signal handler)."""
+        self.link.send_object(L.STOP, None)
 
     def destroy_node(self):
         """Shut down (stop the loop, zero torque, close the bus), then destroy the node."""
@@ -393,21 +432,36 @@ def _end_child(child: subprocess.Popen, link: L.Link) -> None:
         child.wait()
 
 
-def _ignore_signal(signum, frame) -> None:
-    """Let a signal do nothing in Python; rclpy's own handler has shut the context down."""
+#: The running node's first step of a shutdown signal: tell the control loop to stop (zero
+#: torque, exit frames) at once, before rclpy's executor has noticed the shutdown (that took up
+#: to 0.4 s; a signal during start-up waited for the rest of the constructor).
+_stop_loop_now: Optional[Callable[[], None]] = None
+
+
+def _on_shutdown_signal(stop: Callable[[], None]) -> None:
+    global _stop_loop_now
+    _stop_loop_now = stop
+
+
+def _stop_on_signal(signum, frame) -> None:
+    """SIGINT / SIGTERM: stop the loop now; rclpy's own handler shuts the context down."""
+    if _stop_loop_now is not None:
+        _stop_loop_now()
 
 
 def _shutdown_on_signal(signum, frame) -> None:
     """SIGHUP / SIGQUIT (an ssh session that drops): shut down as on SIGINT."""
+    _stop_on_signal(signum, frame)
     rclpy.try_shutdown()
 
 
 def main(args=None) -> int:
     """Run balance_node until a signal; exit with zero torque and the motors disabled."""
-    # SIGINT and SIGTERM only shut rclpy down (its handlers chain to these): no
-    # KeyboardInterrupt may land in the constructor or the stop path and skip the exit frames.
+    # SIGINT and SIGTERM: rclpy's handlers shut rclpy down and chain to these, which stop the
+    # loop at once; no KeyboardInterrupt may land in the constructor or the stop path and skip
+    # the exit frames.
     for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, _ignore_signal)
+        signal.signal(signum, _stop_on_signal)
     rclpy.init(args=args)
     for signum in (signal.SIGHUP, signal.SIGQUIT):
         signal.signal(signum, _shutdown_on_signal)

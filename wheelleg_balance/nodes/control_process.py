@@ -14,7 +14,10 @@ runner in a thread. The child ends with zero torque and exit-motor-mode frames w
 (STOP), when the ROS side goes away (end-of-file on the link: the parent died, even by
 SIGKILL; the kernel also sends it SIGTERM then: PR_SET_PDEATHSIG) and on SIGINT, SIGTERM,
 SIGHUP or SIGQUIT. The sensor samples come from the sensor intake process over a socket pair
-of their own (nodes/sensor_intake.py).
+of their own (nodes/sensor_intake.py). At every pass the loop writes a heartbeat (the time,
+whether it commands the motors) into memory it shares with the watchdog process
+(nodes/watchdog.py), which stops the motors if the loop stalls or dies; no arm before the
+watchdog watches.
 
 With ``clock_source: imu_stamp`` (a simulator in lockstep: sim_node's ``lockstep``) the loop is
 paced by the simulated sensor instead of the wall clock: one tick per IMU sample, at the
@@ -35,12 +38,13 @@ from typing import Optional
 from . import control_link as L
 from .can_io import CanIo, open_bus
 from .sensor_intake import die_with_parent
+from .watchdog import Heartbeat, WATCHING
 from ..core import realtime
 from ..core.balance_loop import BalanceLoop, TickInputs
 from ..core.can_budget import BusLoad, max_catch_up
 from ..core.config import BalanceConfig
 from ..core.deadline import DeadlineLoop, TIMING_WINDOW, window_stats
-from ..core.safety import Mode
+from ..core.safety import COMMANDING, Mode
 from ..core.schema import from_flat
 
 #: Missed deadlines served late, back to back, before a stall is skipped. Catching up keeps the
@@ -67,13 +71,14 @@ class ControlRunner:
 
     def __init__(self, cfg: BalanceConfig, bus, link: L.Link,
                  sensor_link: Optional[L.Link] = None, realtime_options: bool = True,
-                 leg_bus=None):
+                 leg_bus=None, heartbeat: Optional[Heartbeat] = None):
         """
         Build the runner.
 
         bus: the wheels' python-can bus (and the hips', unless leg_bus is given); link: to
         balance_node's ROS side (commands in; state, status, replies out); sensor_link: from
-        the sensor intake (nodes/sensor_intake.py), None when the samples come over ``link``.
+        the sensor intake (nodes/sensor_intake.py), None when the samples come over ``link``;
+        heartbeat: shared with the watchdog (nodes/watchdog.py), written at every pass.
         """
         self.cfg = cfg
         self.loop = BalanceLoop(cfg)
@@ -108,6 +113,9 @@ class ControlRunner:
         self._last_mode: Optional[Mode] = None
         self._shut_down = False
         self.intake_ready = sensor_link is None
+        self.heartbeat = heartbeat
+        # No arming before the watchdog watches (it starts after this process).
+        self.inputs.guarded = heartbeat is None
 
     @staticmethod
     def catch_up_limit(cfg: BalanceConfig, legs_own_bus: bool) -> int:
@@ -148,6 +156,8 @@ class ControlRunner:
             return
         self._shut_down = True
         self._send(*self.loop.stop_frames())
+        if self.heartbeat is not None:
+            self.heartbeat.end()   # stop frames sent: the watchdog has nothing left to guard
         self.can.close()
         if self.leg_can is not None:
             self.leg_can.close()
@@ -174,7 +184,14 @@ class ControlRunner:
 
     # ------------------------------------------------------------------------------ tick
 
+    def _beat(self) -> None:
+        hb = self.heartbeat
+        if hb is not None:
+            hb.beat(time.monotonic(), self.loop.mode in COMMANDING)
+            self.inputs.guarded = hb.state()[0] == WATCHING
+
     def _drain_link(self) -> None:
+        self._beat()
         # The intake's samples first, then the ROS side's messages (it may carry samples too).
         for link in (self.sensor_link, self.link):
             if link is not None:
@@ -262,6 +279,7 @@ class ControlRunner:
             self.loop.report_send(now, self._send(result.frames, result.leg_frames))
         finally:
             inputs.clear()
+        self._beat()   # after the send: an arm in this tick is guarded from its first torque
         self._answer_arm(result.arm_reply)
         for event in result.events:
             self.link.send_object(L.EVENT, event)
@@ -344,6 +362,8 @@ def main(argv=None) -> int:
                                      'balance_node, not by hand)')
     parser.add_argument('--fd', type=int, required=True, help='inherited link socket')
     parser.add_argument('--sensor-fd', type=int, help='inherited socket of the sensor intake')
+    parser.add_argument('--heartbeat-fd', type=int, help="inherited memfd of the watchdog's "
+                        'heartbeat')
     args = parser.parse_args(argv)
     die_with_parent()
     link = L.Link.from_fd(args.fd)
@@ -374,7 +394,8 @@ def main(argv=None) -> int:
                 cfg.can.interface, cfg.legs.channel, exc)))
             bus.shutdown()
             return 2
-    runner = ControlRunner(cfg, bus, link, sensor_link, leg_bus=leg_bus)
+    heartbeat = None if args.heartbeat_fd is None else Heartbeat(args.heartbeat_fd)
+    runner = ControlRunner(cfg, bus, link, sensor_link, leg_bus=leg_bus, heartbeat=heartbeat)
     _stop_on_signals(runner)
     runner.run()
     link.close()

@@ -130,18 +130,42 @@ def can_status(st: Dict[str, Any], hardware_id: str) -> DiagnosticStatus:
     return out
 
 
+def watchdog_status(wd: Dict[str, Any], hardware_id: str) -> DiagnosticStatus:
+    """Build the watchdog's status (nodes/watchdog.py): ERROR once it fired or when it is gone."""
+    out = DiagnosticStatus(name='balance_node: watchdog', hardware_id=hardware_id)
+    if wd['fired']:
+        out.level = ERROR
+        out.message = ('%s (heartbeat %.0f ms old, limit %.0f ms): zero torque and exit sent, '
+                       'control process ended; restart balance_node'
+                       % (wd['text'], 1e3 * wd['stall'], 1e3 * wd['timeout']))
+    elif not wd['running']:
+        out.level, out.message = ERROR, 'watchdog not running (%s)' % wd['text']
+    else:
+        out.level, out.message = OK, '%s, limit %.0f ms' % (wd['text'], 1e3 * wd['timeout'])
+    out.values = key_values(state=wd['text'], fired=wd['fired'], running=wd['running'],
+                            heartbeat_age_at_fire_ms=1e3 * wd['stall'],
+                            timeout_ms=1e3 * wd['timeout'])
+    return out
+
+
 def diagnostic_array(st: Optional[Dict[str, Any]], hardware_id: str, now: float,
-                     alive_limit: float, stamp) -> DiagnosticArray:
-    """Build the whole DiagnosticArray; without any status yet, one ERROR 'no control loop'."""
+                     alive_limit: float, stamp,
+                     watchdog: Optional[Dict[str, Any]] = None) -> DiagnosticArray:
+    """
+    Build the whole DiagnosticArray; without any status yet, one ERROR 'no control loop'.
+
+    watchdog: its state (BalanceNode.watchdog_state), None when there is none (in-process bus).
+    """
     msg = DiagnosticArray()
     msg.header.stamp = stamp
+    extra = [] if watchdog is None else [watchdog_status(watchdog, hardware_id)]
     if st is None:
         msg.status = [DiagnosticStatus(level=ERROR, name='balance_node: control loop',
                                        hardware_id=hardware_id,
-                                       message='control loop not running')]
+                                       message='control loop not running')] + extra
         return msg
     age = now - st['time'] if math.isfinite(st['time']) else math.inf
     msg.status = [safety_status(st, hardware_id), loop_status(st, hardware_id, age,
                                                               alive_limit),
-                  can_status(st, hardware_id)]
+                  can_status(st, hardware_id)] + extra
     return msg

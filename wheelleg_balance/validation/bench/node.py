@@ -552,6 +552,7 @@ class Session:
             '-p', 'can.udp_port:=%d' % port, '-p', 'auto_arm:=true',
             '-p', 'controller:=' + controller, '-p', 'imu_timeout:=%g' % TIMEOUT,
             '-p', 'joint_state_timeout:=%g' % TIMEOUT, '-p', 'motor_timeout:=%g' % TIMEOUT,
+            '-p', 'watchdog_timeout:=%g' % TIMEOUT,
             '-p', 'realtime_priority:=%d' % realtime_priority] + nut.node_args() + list(
                 extra_node_args)
         self.motors_cmd = [sys.executable, '-m', 'wheelleg_balance.validation.bench.node',

@@ -43,6 +43,10 @@ SCENARIOS: Dict[str, Callable[[Context], Outcome]] = {
     'lifted_tilted_15': lambda context: ls.scenario_lifted(context, 15.0),
     'sigint_shutdown': sc.scenario_sigint,
     'sigterm_shutdown': sc.scenario_sigterm,
+    'sighup_shutdown': sc.scenario_sighup,
+    'sigquit_shutdown': sc.scenario_sigquit,
+    'control_process_stalled': sc.scenario_control_stalled,
+    'control_process_killed': sc.scenario_control_killed,
 }
 # The timeout scenarios again at the robot's own timeouts (50 ms), not the rig's doubled ones.
 SCENARIOS.update({'%s_%dms' % (name, round(1e3 * sc.ROBOT_TIMEOUTS['imu_timeout'])):
