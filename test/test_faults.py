@@ -103,6 +103,10 @@ test_cmd_vel_non_finite_dropped_and_absurd_limited = scenario_test('cmd_vel_inva
 test_cmd_vel_bad_value_in_every_field = matrix_test('cmd_vel_fields')
 test_cmd_vel_stamped_in_the_past_still_times_out = scenario_test('cmd_vel_stale')
 test_cmd_vel_stamped_in_the_future_still_times_out = scenario_test('cmd_vel_future')
+# A second publisher (nodes/input_guard.py): on a sensor a FAULT, on a command a refusal.
+test_a_second_imu_publisher_faults_and_blocks_arming = scenario_test('second_imu_publisher')
+test_a_second_cmd_vel_publisher_is_refused_while_balancing_goes_on = \
+    scenario_test('second_cmd_vel_publisher')
 test_joy_bad_value_in_every_axis_gives_a_bounded_command = scenario_test('joy_fields')
 
 # ---------------------------------------------------------------------------------- CAN

@@ -53,8 +53,8 @@ from .protocols import make_protocol
 from .protocols.base import Frame, MotorProtocol
 from .protocols.mit import MitProtocol
 from .reference import ReferenceShaper
-from .safety import COMMANDING, LEGS, LIFTED, LOOP_STALL, Mode, MOTOR_ERROR, MOTOR_REBOOTED, \
-    OVER_TEMPERATURE, SafetyLimits, SafetySupervisor, SensorSnapshot
+from .safety import COMMANDING, INPUT_CONFLICT, LEGS, LIFTED, LOOP_STALL, Mode, MOTOR_ERROR, \
+    MOTOR_REBOOTED, OVER_TEMPERATURE, SafetyLimits, SafetySupervisor, SensorSnapshot
 from .schema import with_changes
 from .sensors import ImuReader, ImuSample, JointSample, JointStateReader
 from .sit_down import BRAKE, DONE, FOLD, SitDown, SitDownConfig
@@ -97,6 +97,10 @@ class CmdHeight(NamedTuple):
     height: float
 
 
+#: The inputs whose conflicts are about the sensors (TickInputs.conflicts): FAULT, no arming.
+SENSOR_INPUTS = ('imu', 'joint_states')
+
+
 @dataclass
 class TickInputs:
     """
@@ -109,7 +113,10 @@ class TickInputs:
     once, no sit-down); params: parameter changes {name: value}, already validated.
     guarded: a state, not an event (``clear`` leaves it): False while what guards the process
     (balance_node's watchdog, nodes/watchdog.py) is not watching: arming is refused and
-    auto_arm waits.
+    auto_arm waits. conflicts: a state too, {input: why}: inputs with a publisher that is not
+    the robot's own (balance_node's graph check, nodes/input_guard.py). A conflict on a sensor
+    ('imu', 'joint_states') refuses arming and is a FAULT while commanding; one on a command
+    ('cmd_vel', 'cmd_height') drops that command (counted as rejected): it then times out.
     """
 
     imu: List[ImuSample] = field(default_factory=list)
@@ -121,6 +128,7 @@ class TickInputs:
     estop: bool = False
     params: Dict[str, Any] = field(default_factory=dict)
     guarded: bool = True
+    conflicts: Dict[str, str] = field(default_factory=dict)
 
     def clear(self) -> None:
         """Empty every input (the lists are reused)."""
@@ -371,6 +379,8 @@ class BalanceLoop:
         self._cmd: Optional[CmdVel] = None
         self.rejected_cmd_vel = 0
         self.rejected_cmd_height = 0
+        #: Why inputs are refused for their publishers (TickInputs.conflicts), '' for none.
+        self.input_conflicts = ''
         self._snapshot = SensorSnapshot()
         self._result = TickResult()
         self._pending_reply: Optional[Tuple[str, bool, str]] = None
@@ -488,6 +498,9 @@ class BalanceLoop:
             self.odometry.update(s.wheel_vel_left, s.wheel_vel_right, s.theta_dot, dt)
         self._estimate_acceleration(dt)
         self._check_motors(now)
+        sensor_conflict = '; '.join(inputs.conflicts[k] for k in SENSOR_INPUTS
+                                    if k in inputs.conflicts)
+        self.input_conflicts = '; '.join(inputs.conflicts.values())
         if inputs.estop:
             self._auto_arm = False
             was = sup.mode
@@ -499,16 +512,20 @@ class BalanceLoop:
             if inputs.arm and not inputs.guarded:
                 self._pending_reply = ('refused', False, 'arming refused: the watchdog is not '
                                        'watching the control loop yet')
+            elif inputs.arm and sensor_conflict:
+                self._pending_reply = ('refused', False, 'arming refused: ' + sensor_conflict)
             else:
                 self._handle_arm(inputs.arm, now, s)
             self._lifted = self._lifted and sup.mode not in COMMANDING
-        elif self._auto_arm and inputs.guarded and sup.mode is Mode.DISARMED \
-                and self._can_arm(now, s):
+        elif self._auto_arm and inputs.guarded and not sensor_conflict \
+                and sup.mode is Mode.DISARMED and self._can_arm(now, s):
             self._auto_arm = False  # at most once per start, whatever the outcome
             self._handle_arm(True, now, s)
             r.events.append(('info', 'auto_arm: %s' % self._pending_reply[2]))
         before = sup.mode
         sup.update(now, s, self._reply_times())
+        if sensor_conflict:   # samples from two sources cannot be trusted
+            sup.report_fault(now, INPUT_CONFLICT, sensor_conflict)
         self._check_stall(now, dt)
         self._check_lift(now, s, dt)
         mode = sup.mode
@@ -543,14 +560,17 @@ class BalanceLoop:
                 self.wheel_states[self.motors.motors.index(motor)].update(
                     fb.position, fb.velocity, t)
         cmd = inputs.cmd_vel
+        conflicts = inputs.conflicts
         if cmd is not None:
-            if math.isfinite(cmd.x_dot) and math.isfinite(cmd.yaw_rate):
+            if 'cmd_vel' not in conflicts and math.isfinite(cmd.x_dot) \
+                    and math.isfinite(cmd.yaw_rate):
                 self._cmd = cmd
             else:
                 self.rejected_cmd_vel += 1
         if inputs.cmd_height is not None:
             h = inputs.cmd_height.height
-            if isinstance(h, (int, float)) and math.isfinite(h):
+            if 'cmd_height' not in conflicts and isinstance(h, (int, float)) \
+                    and math.isfinite(h):
                 self._height_target = min(max(float(h), self.p.height_min), self.p.height_max)
             else:
                 self.rejected_cmd_height += 1
@@ -1122,6 +1142,7 @@ class BalanceLoop:
             'cmd_vel_timed_out': self.shaper.timed_out,
             'rejected_cmd_vel': self.rejected_cmd_vel,
             'rejected_cmd_height': self.rejected_cmd_height,
+            'input_conflicts': self.input_conflicts,
             'frozen_imu_samples': self.imu.frozen,
             'refused_imu_stamps': self.imu.refused_stamps,
             'refused_imu_reason': self.imu.refused_reason,

@@ -153,6 +153,18 @@ class SafetyConfig:
                                  'reply [s]', 0.004, 2.0)
     cmd_vel_timeout: float = param(0.5, 'cmd_vel age after which the references ramp to zero '
                                    '[s] (not a fault)', 0.01, 60.0)
+    imu_publisher: str = param('', "the IMU driver's node name (or /namespace/name): the only "
+                               "publisher allowed on imu; '' = any one publisher. Another "
+                               'publisher: arming refused, FAULT while balancing',
+                               read_only=RO)
+    joint_state_publisher: str = param('', 'as imu_publisher, for joint_states_in (where wheel '
+                                       'or hip states come from another driver)',
+                                       read_only=RO)
+    cmd_vel_publisher: str = param('', "the node allowed to publish cmd_vel (teleop_node, a "
+                                   "twist_mux ...); '' = any one publisher. Another publisher: "
+                                   'cmd_vel refused until it is gone (the robot brakes to a '
+                                   'stand)', read_only=RO)
+    cmd_height_publisher: str = param('', 'as cmd_vel_publisher, for cmd_height', read_only=RO)
     watchdog_timeout: float = param(0.1, 'the watchdog (a process of its own) kills a control '
                                     'loop that commands the motors but has not run for this '
                                     'long, and sends zero torque and exit-motor-mode to every '

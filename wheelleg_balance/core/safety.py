@@ -46,11 +46,12 @@ LIFTED = 'lifted'
 MOTOR_ERROR = 'motor_error'
 MOTOR_REBOOTED = 'motor_rebooted'
 OVER_TEMPERATURE = 'over_temperature'
+INPUT_CONFLICT = 'input_conflict'
 
 #: Every fault code, in the order the checks run.
 FAULT_CODES = (IMU_STALE, JOINT_STATES_STALE, NON_FINITE, IMPLAUSIBLE, FALL, ROLL,
                MOTOR_SILENT, CAN_SEND, INTERNAL, LOOP_STALL, LEGS, LIFTED, MOTOR_ERROR,
-               MOTOR_REBOOTED, OVER_TEMPERATURE, POSE)
+               MOTOR_REBOOTED, OVER_TEMPERATURE, INPUT_CONFLICT, POSE)
 
 
 class Mode(enum.IntEnum):

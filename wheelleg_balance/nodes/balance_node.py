@@ -45,7 +45,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension
 from std_srvs.srv import SetBool, Trigger
 
-from . import control_link as L, lean, sensor_intake, watchdog
+from . import control_link as L, input_guard, lean, sensor_intake, watchdog
 from .control_process import ControlRunner, PUBLISH_ODOM, PUBLISH_STATE
 from .diagnostics import diagnostic_array
 from .params import load, ParameterGuard
@@ -165,6 +165,9 @@ class BalanceNode(Node):
         self.create_service(Trigger, '~/stop', self._on_stop)
         self._diag_period = 1.0 / cfg.publish.diagnostics_rate
         self.create_timer(0.05, self._on_diagnostics_timer)
+        self.input_guard = input_guard.InputGuard(
+            self, cfg, lambda found: self.link.send_object(L.CONFLICTS, found))
+        self.create_timer(input_guard.CHECK_PERIOD, self.input_guard.check)
         self.add_on_set_parameters_callback(self._guard)
 
     def _publisher(self, msg_type, topic: str):

@@ -32,6 +32,7 @@ ESTOP = b'X'        # emergency stop: zero torque, exit motor mode, no sit-down
 ARM = b'A'          # (request id, bool)
 PARAMS = b'P'       # {name: value}
 STOP = b'S'         # shut down: zero torque, exit motor mode, end
+CONFLICTS = b'K'    # {input: why} inputs refused for their publishers (nodes/input_guard.py)
 # Tags: control loop -> ROS side.
 STATE = b's'        # ~/state values, the odometry, the tick's time
 JOINT_VALUES = b'j'  # positions, velocities, efforts of the published joints

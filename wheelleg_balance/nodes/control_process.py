@@ -219,6 +219,8 @@ class ControlRunner:
             inputs.arm = bool(arm)
         elif tag == L.PARAMS:
             inputs.params = {**inputs.params, **payload}
+        elif tag == L.CONFLICTS:
+            inputs.conflicts = payload   # a state: it stays until the next verdict
         elif tag == L.STOP:
             self.timer.stop()
         elif tag == L.READY:

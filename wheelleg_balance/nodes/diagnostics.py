@@ -36,6 +36,9 @@ def safety_status(st: Dict[str, Any], hardware_id: str) -> DiagnosticStatus:
         out.level = WARN if conditions else OK
         out.message = 'DISARMED' + (' (cannot arm: %s)' % _reasons(conditions)
                                     if conditions else '')
+    if st['input_conflicts']:   # inputs refused for their publishers (nodes/input_guard.py)
+        out.level = max(out.level, WARN)
+        out.message += '; refused: %s' % st['input_conflicts']
     out.values = key_values(
         mode=mode, mode_index=st['mode_index'], faults=','.join(c for c, _ in faults),
         fault_reasons=_reasons(faults), conditions=','.join(c for c, _ in conditions),
@@ -44,7 +47,7 @@ def safety_status(st: Dict[str, Any], hardware_id: str) -> DiagnosticStatus:
         cmd_vel_timed_out=st['cmd_vel_timed_out'], rejected_cmd_vel=st['rejected_cmd_vel'],
         frozen_imu_samples=st['frozen_imu_samples'],
         refused_imu_stamps=st['refused_imu_stamps'],
-        refused_imu_reason=st['refused_imu_reason'])
+        refused_imu_reason=st['refused_imu_reason'], input_conflicts=st['input_conflicts'])
     return out
 
 

@@ -19,8 +19,11 @@ import uuid
 
 import can
 from can.interfaces.virtual import VirtualBus
+from geometry_msgs.msg import TwistStamped
+from rclpy.node import Node
 from rclpy.parameter import Parameter
-from sensor_msgs.msg import JointState
+from rclpy.qos import qos_profile_sensor_data
+from sensor_msgs.msg import Imu, JointState
 
 from .bench import IDX, LEG_PARAMS, MIT, MODE, TORQUE_LSB
 from .doubles import bus_off, ErrorFrameStorm, FakeMotors, MOTOR_IDS, tx_queue_full
@@ -33,6 +36,7 @@ from .. import child_env
 from ...core.config import DEFAULTS
 from ...nodes.balance_node import BalanceNode
 from ...nodes.can_io import open_bus
+from ...nodes.input_guard import CHECK_PERIOD as INPUT_CHECK_PERIOD
 from ...nodes.watchdog import CONFIRM_DELAY, POLLS_PER_TIMEOUT
 
 
@@ -433,6 +437,66 @@ def _cmd_stamp(context, name: str, fault: str, offset: float) -> Outcome:
         out.check('back to 0 within cmd_vel_timeout + 0.5 s ramp + 0.2 s after it stopped',
                   t_zero is not None and t_zero - t_stop <= 0.3 + 0.5 + 0.2)
         out.check('still BALANCING', _balancing_since(rig, t0))
+    return _on_armed_rig(context, out, run, cmd_vel_timeout=0.3)
+
+
+#: A second publisher on an input to its verdict in the loop, at most [s]: the graph check's
+#: period, then DDS discovery on localhost (tens of ms) and a tick.
+CONFLICT_DETECTION = INPUT_CHECK_PERIOD + 0.3
+
+
+def scenario_second_imu_publisher(context) -> Outcome:
+    out = Outcome('second_imu_publisher', 'a second node publishes on imu while it balances',
+                  'FAULT input_conflict naming both publishers, zero torque within %.1f s (the '
+                  "graph check's %.1f s period + discovery); re-arm refused while it publishes, "
+                  'accepted once it is gone' % (CONFLICT_DETECTION, INPUT_CHECK_PERIOD))
+
+    def run(rig):
+        rogue = Node('rogue_imu', namespace=rig.node.get_namespace(), context=context)
+        pub = rogue.create_publisher(Imu, 'imu', qos_profile_sensor_data)
+        t_fault = time.time()
+        try:
+            _zero_reaction(out, rig, t_fault, CONFLICT_DETECTION, 'input_conflict')
+            out.check('the reason names the other publisher',
+                      'rogue_imu' in rig.robot.safety().get('fault_reasons', ''))
+            out.check('re-arm refused while it publishes', not rig.robot.arm().success)
+        finally:
+            rogue.destroy_publisher(pub)
+            rogue.destroy_node()
+        out.check('re-arm accepted once it is gone',
+                  wait_for(lambda: rig.robot.arm().success, 3.0, step=0.3))
+    return _on_armed_rig(context, out, run)
+
+
+def scenario_second_cmd_vel_publisher(context) -> Outcome:
+    out = Outcome('second_cmd_vel_publisher', 'a second node publishes on cmd_vel (two '
+                  'operators) while it balances and moves', 'class (c): cmd_vel refused, x_dot* '
+                  'ramps to 0 after cmd_vel_timeout, still BALANCING; the reason in '
+                  'diagnostics; commands accepted again once it is gone')
+
+    def run(rig):
+        rig.robot.cmd = (0.3, 0.0)
+        ok = out.check('x_dot* reaches 0.3 m/s', wait_for(
+            lambda: (rig.robot.last_state() or [0.0] * len(IDX))[IDX['x_dot_ref']] >= 0.3 - 1e-9,
+            3.0))
+        rogue = Node('rogue_teleop', namespace=rig.node.get_namespace(), context=context)
+        pub = rogue.create_publisher(TwistStamped, 'cmd_vel', qos_profile_sensor_data)
+        t0 = time.time()
+        try:
+            refused = wait_for(lambda: 'rogue_teleop' in rig.robot.safety().get(
+                'input_conflicts', ''), CONFLICT_DETECTION + 1.0)
+            out.check('diagnostics name the second cmd_vel publisher', refused)
+            out.figures['detected_s'] = round(time.time() - t0, 3)
+            out.check('x_dot* back to 0 (cmd_vel refused, then its timeout and the ramp)',
+                      ok and wait_for(lambda: rig.robot.last_state()[IDX['x_dot_ref']] == 0.0,
+                                      2.0))
+            out.check('still BALANCING', _balancing_since(rig, t0))
+        finally:
+            rogue.destroy_publisher(pub)
+            rogue.destroy_node()
+        out.check('commands accepted again once it is gone', wait_for(
+            lambda: rig.robot.last_state()[IDX['x_dot_ref']] > 0.1, 3.0))
+        rig.robot.cmd = None
     return _on_armed_rig(context, out, run, cmd_vel_timeout=0.3)
 
 

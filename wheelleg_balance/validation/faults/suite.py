@@ -20,6 +20,8 @@ SCENARIOS: Dict[str, Callable[[Context], Outcome]] = {
     'cmd_vel_invalid': sc.scenario_cmd_vel_invalid,
     'cmd_vel_stale': sc.scenario_cmd_vel_stale,
     'cmd_vel_future': sc.scenario_cmd_vel_future,
+    'second_imu_publisher': sc.scenario_second_imu_publisher,
+    'second_cmd_vel_publisher': sc.scenario_second_cmd_vel_publisher,
     'joy_fields': scenario_joy_fields,
     'motor_silent': sc.scenario_motor_silent,
     'reply_unknown_id': sc.scenario_unknown_reply_id,
