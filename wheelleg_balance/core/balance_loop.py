@@ -425,7 +425,7 @@ class BalanceLoop:
                           max_wheel_torque=cfg.safety.max_wheel_torque,
                           switch_blend_time=c.switch_blend_time,
                           lqr_Q=np.diag(cfg.output_regulation.q_diag),
-                          lqr_R=cfg.output_regulation.r)
+                          lqr_R=cfg.output_regulation.r, auto=cfg.auto)
 
     def _configure_live(self, cfg: BalanceConfig) -> None:
         """Give every component the live-changeable settings of ``cfg``."""
@@ -434,6 +434,8 @@ class BalanceLoop:
         core.yaw_rate_gain = cfg.control.yaw_rate_gain
         core.max_wheel_torque = cfg.safety.max_wheel_torque
         core.switch_blend_time = cfg.control.switch_blend_time
+        core.auto = cfg.auto
+        self.core.set_auto_rules(cfg.auto)
         self.supervisor.limits = safety_limits(cfg)
         sh, ref = self.shaper, cfg.reference
         sh.max_velocity, sh.max_acceleration = ref.max_velocity, ref.max_acceleration

@@ -16,9 +16,10 @@ from dataclasses import dataclass
 import math
 from typing import List
 
+from .auto_mode import AutoRules
 from .lqr import DEFAULT_Q, DEFAULT_R
 from .params import IdaPbcGains, RobotParams
-from .pipeline import CONTROLLER_NAMES
+from .pipeline import MODES
 from .protocols import PROTOCOLS
 from .schema import param, section, to_flat
 
@@ -38,9 +39,10 @@ def _direction(default: int, description: str):
 class ControlConfig:
     """The controller and its shared tuning."""
 
-    controller: str = param('ida_pbc', 'balance controller: %s; switchable live, bumpless, at '
-                            'the next control tick' % ' | '.join(CONTROLLER_NAMES),
-                            choices=CONTROLLER_NAMES)
+    controller: str = param('ida_pbc', 'balance controller: %s (auto: IDA-PBC to rise and at '
+                            'large angles, output regulation near upright; auto.*); '
+                            'switchable live, bumpless, at the next control tick'
+                            % ' | '.join(MODES), choices=MODES)
     height: float = param(0.37, 'body height l [m] used when no leg joints are configured; '
                           'within height_min..height_max', 0.05, 3.0)
     compensate_offset: bool = param(True, 'IDA-PBC uses theta~ - d_hat (removes the velocity '
@@ -160,7 +162,7 @@ class SafetyConfig:
     joint_state_publisher: str = param('', 'as imu_publisher, for joint_states_in (where wheel '
                                        'or hip states come from another driver)',
                                        read_only=RO)
-    cmd_vel_publisher: str = param('', "the node allowed to publish cmd_vel (teleop_node, a "
+    cmd_vel_publisher: str = param('', 'the node allowed to publish cmd_vel (teleop_node, a '
                                    "twist_mux ...); '' = any one publisher. Another publisher: "
                                    'cmd_vel refused until it is gone (the robot brakes to a '
                                    'stand)', read_only=RO)
@@ -447,6 +449,7 @@ class BalanceConfig:
     imu: ImuConfig = section(ImuConfig)
     control: ControlConfig = section(ControlConfig)
     ida_pbc: IdaPbcGains = section(IdaPbcGains, 'ida_pbc')
+    auto: AutoRules = section(AutoRules, 'auto')
     output_regulation: OutputRegulationConfig = section(OutputRegulationConfig,
                                                         'output_regulation')
     joints: JointsConfig = section(JointsConfig)

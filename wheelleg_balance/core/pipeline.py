@@ -24,6 +24,7 @@ from typing import Optional
 import numpy as np
 
 from .actuation import wheel_torques
+from .auto_mode import AutoRules, AutoSelector, HOLD, RISE
 from .controller_base import ControlInput
 from .estimation import WheelOdometry
 from .ida_pbc import IdaPbcController
@@ -32,8 +33,11 @@ from .observer import DisturbanceObserver
 from .output_regulation import LqrController, OutputRegulationController
 from .params import CONTROL_PERIOD, IdaPbcGains, RobotParams
 
-#: Names accepted by ``BalanceCore.select`` and the node's ``controller`` parameter.
+#: The controllers (``TickOutput.controller``, the index in ~/state).
 CONTROLLER_NAMES = ('ida_pbc', 'output_regulation', 'lqr')
+#: Names accepted by ``BalanceCore.select`` and the node's ``controller`` parameter: a
+#: controller, or ``auto`` (core/auto_mode.py chooses one every tick).
+MODES = CONTROLLER_NAMES + ('auto',)
 
 
 @dataclass(frozen=True)
@@ -66,7 +70,8 @@ class CoreConfig:
     """
     Tuning of the control core.
 
-    controller: initial controller, one of CONTROLLER_NAMES.
+    controller: initial controller, one of MODES ('auto': core/auto_mode.py chooses).
+    auto: the auto mode's thresholds.
     ida_pbc: IDA-PBC parameters (Table I by default).
     compensate_offset: IDA-PBC uses theta~ - d_hat (removes the velocity bias an IMU offset
     causes; the paper leaves the offset in).
@@ -86,6 +91,7 @@ class CoreConfig:
     switch_blend_time: float = 0.1
     lqr_Q: Optional[np.ndarray] = None
     lqr_R: Optional[np.ndarray] = None
+    auto: AutoRules = field(default_factory=AutoRules)
 
 
 @dataclass(frozen=True)
@@ -128,9 +134,9 @@ class BalanceCore:
         """
         self.p = p
         self.config = config if config is not None else CoreConfig()
-        if self.config.controller not in CONTROLLER_NAMES:
+        if self.config.controller not in MODES:
             raise ValueError('unknown controller %r (one of %s)'
-                             % (self.config.controller, ', '.join(CONTROLLER_NAMES)))
+                             % (self.config.controller, ', '.join(MODES)))
         self.dt = dt
         self.schedule = GainSchedule(p, self.config.lqr_Q, self.config.lqr_R)
         self.controllers = {
@@ -140,7 +146,11 @@ class BalanceCore:
         }
         self.observer = DisturbanceObserver(p, dt)
         self.odometry = odometry if odometry is not None else WheelOdometry(p)
+        self._auto: Optional[AutoSelector] = None
+        self._takeover_speed = 0.0   # [m/s], fading out after the auto mode's take-over
         self._active = self.config.controller
+        if self._active == 'auto':
+            self._auto, self._active = AutoSelector(self.config.auto), RISE
         self._requested: Optional[str] = None
         self._input = ControlInput(l=p.height_min)
         self._l = p.height_min  # last valid height [m]
@@ -154,13 +164,34 @@ class BalanceCore:
         """Name of the controller that computed the last tick."""
         return self._active
 
+    @property
+    def auto(self) -> Optional[AutoSelector]:
+        """Return the auto mode's selector (None unless the controller is 'auto')."""
+        return self._auto
+
+    @property
+    def mode(self) -> str:
+        """Return what was selected: a controller's name or 'auto'."""
+        return 'auto' if self._auto is not None else (self._requested or self._active)
+
     def select(self, name: str) -> None:
-        """Switch to controller ``name`` at the next tick (bumpless). Raises ValueError."""
-        if name not in CONTROLLER_NAMES:
-            raise ValueError('unknown controller %r (one of %s)'
-                             % (name, ', '.join(CONTROLLER_NAMES)))
+        """Switch to ``name`` (MODES) at the next tick (bumpless). Raises ValueError."""
+        if name not in MODES:
+            raise ValueError('unknown controller %r (one of %s)' % (name, ', '.join(MODES)))
+        if name == 'auto':
+            if self._auto is None:   # it goes on from the controller that runs
+                self._auto = AutoSelector(self.config.auto, choice=self._active
+                                          if self._active in (RISE, HOLD) else RISE)
+            return
+        self._auto = None
         if name != self._active:
             self._requested = name
+
+    def set_auto_rules(self, rules: AutoRules) -> None:
+        """Replace the auto mode's thresholds (from the next tick)."""
+        self.config.auto = rules
+        if self._auto is not None:
+            self._auto.rules = rules
 
     def set_ida_pbc_gains(self, gains: IdaPbcGains) -> None:
         """Replace the IDA-PBC parameters (k, m22_0, k_v, P); applies from the next tick."""
@@ -179,6 +210,9 @@ class BalanceCore:
         self._blend_step = 0.0
         if self._requested is not None:
             self._active, self._requested = self._requested, None
+        if self._auto is not None:
+            self._auto.reset()
+            self._active = self._auto.choice
         s = self._fill_input(meas, Reference(), 0.0, 0.0, self.observer.xi_hat)
         for controller in self.controllers.values():
             controller.reset(s)
@@ -208,6 +242,16 @@ class BalanceCore:
         l = self._height(meas.l)
         xi_hat = self.observer.update(meas.theta_meas, x, self._u_applied, l)
         s = self._fill_input(meas, ref, x, x_dot, xi_hat)
+        if self._auto is not None:
+            choice = self._auto.choose(meas.theta_meas - float(xi_hat[4]), meas.theta_dot, dt)
+            if choice != self._active:
+                self._requested = choice
+                # Taking over a moving robot: the hold starts at its speed and brakes at
+                # auto.stop_deceleration, instead of pulling it back to where it took over.
+                self._takeover_speed = x_dot - ref.x_dot_ref if choice == HOLD else 0.0
+            s.x_dot_ref = ref.x_dot_ref + self._takeover_speed
+            v, step = self._takeover_speed, self.config.auto.stop_deceleration * dt
+            self._takeover_speed = 0.0 if abs(v) <= step else v - math.copysign(step, v)
 
         if self._requested is not None:
             # Bumpless transfer: the new controller starts from the current estimate, and the

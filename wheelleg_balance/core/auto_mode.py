@@ -1,0 +1,93 @@
+"""
+``controller: auto``: which of the paper's controllers runs, decided every tick.
+
+The paper has two controllers for two jobs (Sec. IV): IDA-PBC (13) brings the robot up from
+large angles (the start-up from the tail, Sec. V-B 1) and tracks velocity; output regulation (9)
+stands it still with the IMU offset d estimated by the observer (8), holding its position. The
+auto mode runs each where it is good, by two rules on the state, with hysteresis:
+
+- **rise** (IDA-PBC): at arming, and whenever the body is far from upright:
+  |theta~ - d_hat| > ``leave_angle`` or |theta_dot| > ``leave_rate``;
+- **hold** (output regulation): once the body has been near upright, |theta~ - d_hat| <
+  ``enter_angle`` and |theta_dot| < ``enter_rate``, for ``dwell`` seconds. Output regulation
+  follows the stick too: its position reference moves at x_dot* (core/output_regulation.py),
+  so a command does not leave this mode; only the state does.
+
+The gap between enter and leave thresholds and the dwell keep it from chattering at a
+boundary; the switch itself is bumpless (BalanceCore blends the jump in u out over
+``switch_blend_time``). The margins of each controller over the height range are in
+docs/margins.md.
+"""
+from dataclasses import dataclass
+import math
+from typing import List
+
+from .schema import param
+
+RISE = 'ida_pbc'
+HOLD = 'output_regulation'
+
+
+@dataclass(frozen=True)
+class AutoRules:
+    """Thresholds of the auto mode (module docstring); hysteresis: enter below leave."""
+
+    enter_angle: float = param(math.radians(4.0), 'auto mode: |theta~ - d_hat| below this '
+                               '[rad] ...', 0.001, 0.5)
+    enter_rate: float = param(0.5, '... and |theta_dot| below this [rad/s] ...', 0.01, 10.0)
+    dwell: float = param(0.3, '... for this long [s]: output regulation holds the robot',
+                         0.0, 10.0)
+    leave_angle: float = param(math.radians(12.0), 'auto mode: |theta~ - d_hat| beyond this '
+                               '[rad] ...', 0.002, 1.5)
+    leave_rate: float = param(3.0, '... or |theta_dot| beyond this [rad/s]: IDA-PBC',
+                              0.02, 50.0)
+    stop_deceleration: float = param(0.5, 'auto mode: a robot still moving when output '
+                                     'regulation takes over is braked to x_dot* at this rate '
+                                     '[m/s^2] (its body leans about atan(a/g))', 0.01, 10.0)
+
+    def problems(self) -> List[str]:
+        """Check the hysteresis: each enter threshold below its leave threshold."""
+        if self.enter_angle < self.leave_angle and self.enter_rate < self.leave_rate:
+            return []
+        return ['auto.enter_angle and auto.enter_rate must be below auto.leave_angle and '
+                'auto.leave_rate (the hysteresis)']
+
+
+class AutoSelector:
+    """The auto mode's state: the controller it chose, and how long the body has been upright."""
+
+    def __init__(self, rules: AutoRules = AutoRules(), choice: str = RISE):
+        self.rules = rules
+        self.choice = choice
+        self._upright_for = 0.0
+        #: Changes of the choice since construction (not reset on arming).
+        self.switches = 0
+
+    def reset(self) -> None:
+        """Arming: start with IDA-PBC (the robot rises from wherever it is)."""
+        self.choice = RISE
+        self._upright_for = 0.0
+
+    def choose(self, tilt: float, theta_dot: float, dt: float) -> str:
+        """
+        Return the controller for this tick.
+
+        tilt: theta~ - d_hat [rad], the body's pitch from upright as estimated; theta_dot
+        [rad/s]; dt: the tick's period [s]. Non-finite input counts as far from upright.
+        """
+        r = self.rules
+        tilt, rate = abs(tilt), abs(theta_dot)
+        choice = self.choice
+        if not (tilt <= r.leave_angle and rate <= r.leave_rate):   # NaN lands here too
+            choice = RISE
+            self._upright_for = 0.0
+        elif tilt < r.enter_angle and rate < r.enter_rate:
+            self._upright_for += dt
+            if self._upright_for >= r.dwell:
+                choice = HOLD
+        else:
+            self._upright_for = 0.0
+        if choice != self.choice:
+            self.choice = choice
+            self.switches += 1
+        return choice
