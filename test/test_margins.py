@@ -18,7 +18,6 @@ import pytest
 from scipy.signal import cont2discrete, dfreqresp, StateSpace
 
 from wheelleg_balance.core import margins
-from wheelleg_balance.core.balance_loop import BalanceLoop
 from wheelleg_balance.core.config import BalanceConfig
 from wheelleg_balance.core.ida_pbc import ida_pbc_terms
 from wheelleg_balance.core.lqr import table_i_force_gain
@@ -121,13 +120,6 @@ def test_the_margins_a_short_case_does_meet(controller, gains_set):
 
 
 # --- what is linearized -------------------------------------------------------------------
-
-
-def test_core_config_is_the_nodes():
-    ours, node = margins.core_config(CFG), BalanceLoop._core_config(CFG)
-    for name in vars(node):
-        a, b = getattr(ours, name), getattr(node, name)
-        assert np.array_equal(a, b) if isinstance(a, np.ndarray) else a == b, name
 
 
 @pytest.mark.parametrize('l', [0.37, 0.525, 0.70])

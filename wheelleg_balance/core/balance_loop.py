@@ -240,6 +240,17 @@ def all_stop_frames(cfg: BalanceConfig) -> Tuple[List[Frame], List[Frame]]:
     return frames, hips.zero_torque_frames(ids) + hips.disable_frames(ids)
 
 
+def core_config(cfg: BalanceConfig) -> CoreConfig:
+    """Return the control core's tuning from the configuration (the tick's, the margins')."""
+    c = cfg.control
+    return CoreConfig(controller=c.controller, ida_pbc=cfg.ida_pbc,
+                      compensate_offset=c.compensate_offset, d_hat0=c.d_hat0,
+                      yaw_rate_gain=c.yaw_rate_gain, max_wheel_torque=cfg.safety.max_wheel_torque,
+                      switch_blend_time=c.switch_blend_time,
+                      lqr_Q=np.diag(cfg.output_regulation.q_diag),
+                      lqr_R=cfg.output_regulation.r, auto=cfg.auto)
+
+
 def safety_limits(cfg: BalanceConfig) -> SafetyLimits:
     """Return the supervisor's thresholds from the configuration."""
     s = cfg.safety
@@ -352,7 +363,7 @@ class BalanceLoop:
         self.period = cfg.loop.control_period
         self.p = cfg.model
         self.odometry = WheelOdometry(self.p)
-        self.core = BalanceCore(self.p, self._core_config(cfg), dt=self.period,
+        self.core = BalanceCore(self.p, core_config(cfg), dt=self.period,
                                 odometry=self.odometry)
         self.protocol = build_protocol(cfg)
         self.motors = MotorSet(self.protocol, (
@@ -415,17 +426,6 @@ class BalanceLoop:
         self._configure_live(cfg)
 
     # ----------------------------------------------------------------------- configuration
-
-    @staticmethod
-    def _core_config(cfg: BalanceConfig) -> CoreConfig:
-        c = cfg.control
-        return CoreConfig(controller=c.controller, ida_pbc=cfg.ida_pbc,
-                          compensate_offset=c.compensate_offset, d_hat0=c.d_hat0,
-                          yaw_rate_gain=c.yaw_rate_gain,
-                          max_wheel_torque=cfg.safety.max_wheel_torque,
-                          switch_blend_time=c.switch_blend_time,
-                          lqr_Q=np.diag(cfg.output_regulation.q_diag),
-                          lqr_R=cfg.output_regulation.r, auto=cfg.auto)
 
     def _configure_live(self, cfg: BalanceConfig) -> None:
         """Give every component the live-changeable settings of ``cfg``."""

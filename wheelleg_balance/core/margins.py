@@ -41,6 +41,7 @@ import numpy as np
 from scipy.optimize import brentq
 from scipy.signal import cont2discrete, StateSpace
 
+from .balance_loop import core_config
 from .config import BalanceConfig
 from .controller_base import ControlInput
 from .lqr import table_i_force_gain
@@ -48,7 +49,7 @@ from .model import linearize
 from .observer import DisturbanceObserver
 from .output_regulation import LqrController, OutputRegulationController
 from .params import CONTROL_PERIOD, IdaPbcGains, RobotParams
-from .pipeline import BalanceCore, CONTROLLER_NAMES, CoreConfig
+from .pipeline import BalanceCore, CONTROLLER_NAMES
 
 #: Gain sets certified: the configuration's defaults (what balance_node runs unconfigured) and
 #: the paper's Table I.
@@ -155,18 +156,6 @@ class FixedGain:
     def gain(self, l: float) -> np.ndarray:
         """Return k_x as an array."""
         return np.array(self.k_x)
-
-
-def core_config(cfg: BalanceConfig = BalanceConfig()) -> CoreConfig:
-    """Return the CoreConfig balance_node builds from ``cfg`` (as BalanceLoop does)."""
-    c = cfg.control
-    return CoreConfig(controller=c.controller, ida_pbc=cfg.ida_pbc,
-                      compensate_offset=c.compensate_offset, d_hat0=c.d_hat0,
-                      yaw_rate_gain=c.yaw_rate_gain,
-                      max_wheel_torque=cfg.safety.max_wheel_torque,
-                      switch_blend_time=c.switch_blend_time,
-                      lqr_Q=np.diag(cfg.output_regulation.q_diag),
-                      lqr_R=cfg.output_regulation.r)
 
 
 def build_core(gains_set: str, cfg: BalanceConfig = BalanceConfig()) -> BalanceCore:
