@@ -16,6 +16,7 @@ setup(
         ('share/' + package_name, ['package.xml']),
         (os.path.join('share', package_name, 'config'),
          glob('config/*.yaml') + glob('config/*.xml')),
+        (os.path.join('share', package_name, 'config', 'sros2'), glob('config/sros2/*.xml')),
         (os.path.join('share', package_name, 'launch'), glob('launch/*.launch.py')),
         (os.path.join('share', package_name, 'urdf'), glob('urdf/*.urdf')),
     ],

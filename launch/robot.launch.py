@@ -14,6 +14,13 @@ Bring up the real robot: joystick driver, teleop_node and balance_node.
 - ``robot_state_publisher``: the TF of the robot's links from urdf/wheelleg_balance.urdf and the
   joint_states balance_node publishes (hips, wheels and the legs' passive knees).
 
+DDS discovery stays on the robot: ``discovery_range`` (ROS_AUTOMATIC_DISCOVERY_RANGE of every
+node started here) is the caller's ROS_AUTOMATIC_DISCOVERY_RANGE if set, else LOCALHOST;
+``static_peers`` (ROS_STATIC_PEERS, ``;``-separated) is the caller's ROS_STATIC_PEERS, the
+operator's station that may reach the robot all the same. Both are launch arguments:
+``discovery_range:=SUBNET`` opens it again. SROS2 (docs/robot_setup.md, "SROS2") comes from the
+environment the launch inherits (ROS_SECURITY_*), not from arguments.
+
 All files come from share/wheelleg_balance of the installed package. The launch packages are
 imported inside generate_launch_description, so the module imports (and its helpers run) where
 they are not installed, as in the test suite's environment.
@@ -21,6 +28,8 @@ they are not installed, as in the test suite's environment.
 import os
 
 JOYSTICKS = ('xbox', 'ps4')
+#: The values of ROS_AUTOMATIC_DISCOVERY_RANGE (Jazzy's rcl); this launch's default: LOCALHOST.
+DISCOVERY_RANGES = ('LOCALHOST', 'SUBNET', 'SYSTEM_DEFAULT', 'OFF')
 URDF_FILE = os.path.join('urdf', 'wheelleg_balance.urdf')
 
 
@@ -33,8 +42,8 @@ def robot_description(share):
 def generate_launch_description():
     from ament_index_python.packages import get_package_share_directory
     from launch import LaunchDescription
-    from launch.actions import DeclareLaunchArgument
-    from launch.substitutions import LaunchConfiguration
+    from launch.actions import DeclareLaunchArgument, SetEnvironmentVariable
+    from launch.substitutions import EnvironmentVariable, LaunchConfiguration
     from launch_ros.actions import Node
 
     share = get_package_share_directory('wheelleg_balance')
@@ -44,6 +53,19 @@ def generate_launch_description():
     # of text and substitutions is concatenated by launch into one path.
     teleop_yaml = [os.path.join(config, 'teleop_'), joystick, '.yaml']
     return LaunchDescription([
+        # Before any node: the environment is read when a process starts.
+        DeclareLaunchArgument('discovery_range', default_value=EnvironmentVariable(
+            'ROS_AUTOMATIC_DISCOVERY_RANGE', default_value='LOCALHOST'),
+            choices=list(DISCOVERY_RANGES),
+            description='ROS_AUTOMATIC_DISCOVERY_RANGE of the nodes (default: the '
+                        "caller's, else LOCALHOST: discovery stays on the robot)"),
+        SetEnvironmentVariable('ROS_AUTOMATIC_DISCOVERY_RANGE',
+                               LaunchConfiguration('discovery_range')),
+        DeclareLaunchArgument('static_peers', default_value=EnvironmentVariable(
+            'ROS_STATIC_PEERS', default_value=''),
+            description="ROS_STATIC_PEERS of the nodes: the operator's station, "
+                        "';'-separated addresses (default: the caller's)"),
+        SetEnvironmentVariable('ROS_STATIC_PEERS', LaunchConfiguration('static_peers')),
         DeclareLaunchArgument('joystick', default_value='xbox', choices=list(JOYSTICKS),
                               description='pad layout: config/teleop_<joystick>.yaml '
                                           '(ps4 also covers PS5 pads)'),

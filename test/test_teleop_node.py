@@ -363,3 +363,40 @@ def test_launch_file_compiles_and_references_installed_files():
     assert {'joy', 'game_controller_node', 'wheelleg_balance'} <= strings
     # Files are installed: setup.py ships config/*.yaml and launch/*.launch.py to share/.
     assert "glob('config/*.yaml')" in setup and "glob('launch/*.launch.py')" in setup
+    _check_discovery_stays_on_the_robot(tree)
+
+
+def _check_discovery_stays_on_the_robot(tree):
+    """robot.launch.py: ROS_AUTOMATIC_DISCOVERY_RANGE LOCALHOST unless told, static peers."""
+    def name(call):
+        return getattr(call.func, 'id', getattr(call.func, 'attr', ''))
+
+    def literal(node):
+        return ast.literal_eval(node) if isinstance(node, ast.Constant) else None
+
+    actions = next(n.args[0].elts for n in ast.walk(tree) if isinstance(n, ast.Call)
+                   and name(n) == 'LaunchDescription')
+    calls = [a for a in actions if isinstance(a, ast.Call)]
+    arguments = {literal(c.args[0]): c for c in calls if name(c) == 'DeclareLaunchArgument'}
+    settings = {literal(c.args[0]): c.args[1] for c in calls
+                if name(c) == 'SetEnvironmentVariable'}
+    first_node = min(i for i, c in enumerate(calls) if name(c) == 'Node')
+    ranges = next(ast.literal_eval(n.value) for n in ast.walk(tree)
+                  if isinstance(n, ast.Assign) and n.targets[0].id == 'DISCOVERY_RANGES')
+    assert set(ranges) == {'LOCALHOST', 'SUBNET', 'SYSTEM_DEFAULT', 'OFF'}   # rcl, Jazzy
+    for variable, argument, default in (('ROS_AUTOMATIC_DISCOVERY_RANGE', 'discovery_range',
+                                         'LOCALHOST'),
+                                        ('ROS_STATIC_PEERS', 'static_peers', '')):
+        # The variable is the launch argument's value, set before any node starts ...
+        value = settings[variable]
+        assert name(value) == 'LaunchConfiguration' and literal(value.args[0]) == argument
+        assert calls.index(arguments[argument]) < first_node
+        assert max(i for i, c in enumerate(calls) if name(c) == 'SetEnvironmentVariable' and
+                   literal(c.args[0]) == variable) < first_node
+        # ... whose default is the caller's variable, else the robot's default.
+        kwargs = {k.arg: k.value for k in arguments[argument].keywords}
+        env = kwargs['default_value']
+        assert name(env) == 'EnvironmentVariable' and literal(env.args[0]) == variable
+        assert {k.arg: literal(k.value) for k in env.keywords} == {'default_value': default}
+    choices = {k.arg: k.value for k in arguments['discovery_range'].keywords}['choices']
+    assert ast.unparse(choices) == 'list(DISCOVERY_RANGES)'

@@ -220,7 +220,8 @@ class BalanceNode(Node):
         # joint_states_in, never the joint_states this node publishes (docs/interface.md).
         self._intake = subprocess.Popen(sensor_intake.command(
             fd, self.get_name(), self.get_namespace(), self.resolve_topic_name('imu'),
-            self.resolve_topic_name('joint_states_in'), to_flat(self.config)), pass_fds=(fd,))
+            self.resolve_topic_name('joint_states_in'), to_flat(self.config),
+            sensor_intake.enclave_argument(sys.argv)), pass_fds=(fd,))
         intake_end.close()
 
     # --------------------------------------------------------------- from the control loop

@@ -159,13 +159,31 @@ class SensorIntake:
         self.node.destroy_node()
 
 
+def enclave_argument(argv) -> str:
+    """Return the SROS2 enclave given as ``--enclave`` / ``-e`` among ROS arguments ('' none)."""
+    in_ros = False
+    for k, arg in enumerate(argv):
+        if arg == '--ros-args':
+            in_ros = True
+        elif arg == '--':
+            in_ros = False
+        elif in_ros and arg in ('--enclave', '-e') and k + 1 < len(argv):
+            return argv[k + 1]
+    return ''
+
+
 def command(fd: int, name: str, namespace: str, imu_topic: str, joint_topic: str,
-            params: dict):
-    """Return the command that starts the intake process (``params``: flat configuration)."""
+            params: dict, enclave: str = ''):
+    """
+    Return the command that starts the intake process (``params``: flat configuration).
+
+    enclave: balance_node's SROS2 enclave, for the intake's own participant ('' = none given).
+    """
     import json
     return [sys.executable, '-m', 'wheelleg_balance.nodes.sensor_intake', '--fd', str(fd),
             '--name', name, '--namespace', namespace, '--imu', imu_topic,
-            '--joint-states', joint_topic, '--params', json.dumps(params)]
+            '--joint-states', joint_topic, '--params', json.dumps(params),
+            '--enclave', enclave]
 
 
 def main(argv=None) -> int:
@@ -183,6 +201,7 @@ def main(argv=None) -> int:
     parser.add_argument('--imu', required=True)
     parser.add_argument('--joint-states', required=True)
     parser.add_argument('--params', required=True, help='the configuration as JSON')
+    parser.add_argument('--enclave', default='', help="balance_node's SROS2 enclave")
     args = parser.parse_args(argv)
     die_with_parent()
     link = Link.from_fd(args.fd)
@@ -198,7 +217,8 @@ def main(argv=None) -> int:
     # (the soak benchmark, docs/benchmarks.md).
     apply_udp_only()
     context = Context()
-    rclpy.init(args=[], context=context, signal_handler_options=SignalHandlerOptions.NO)
+    ros_args = ['--ros-args', '--enclave', args.enclave] if args.enclave else []
+    rclpy.init(args=ros_args, context=context, signal_handler_options=SignalHandlerOptions.NO)
     intake = SensorIntake(context, link, joint_state_reader(cfg), args.name, args.namespace,
                           args.imu, args.joint_states)
     intake.realtime = priority
