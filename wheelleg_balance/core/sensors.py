@@ -77,7 +77,7 @@ class ImuReader:
         self.gyro = (NAN, NAN, NAN)
         self.source = 'none'
         self.frozen = 0
-        self._stamp: Optional[Tuple[int, int]] = None
+        self._stamp: Optional[int] = None   # the previous header stamp [ns]
         self.stamp_tolerance = stamp_tolerance
         self.refused_stamps = 0
         self.refused_reason = ''
@@ -88,12 +88,13 @@ class ImuReader:
 
         forward_acceleration [m/s^2]: the robot's own, for the gravity fallback.
         """
-        stamp = (s.stamp_sec, s.stamp_nanosec)
-        if stamp == self._stamp and stamp != (0, 0):
+        # One integer [ns]: a pair compares wrongly when nanosec is not normalised (>= 1e9).
+        stamp = s.stamp_sec * 1_000_000_000 + s.stamp_nanosec
+        if stamp == self._stamp and stamp != 0:
             # A driver republishing one sample: keep the first receipt time so it goes stale.
             self.frozen += 1
             return False
-        if stamp != (0, 0):   # unstamped drivers: receipt time only
+        if stamp != 0:   # unstamped drivers: receipt time only
             refused = self._stamp_problem(stamp, s.clock)
             if refused is not None:
                 self.refused_stamps += 1
@@ -110,11 +111,17 @@ class ImuReader:
             if att.roll == att.roll else self.gyro[1]
         return True
 
-    def _stamp_problem(self, stamp: Tuple[int, int], clock: float) -> Optional[str]:
-        """Return why a header stamp is refused (backwards, or ahead of the clock), else None."""
-        if self._stamp is not None and self._stamp != (0, 0) and stamp < self._stamp:
-            return 'IMU stamp ran backwards: %d.%09d after %d.%09d' % (stamp + self._stamp)
-        ahead = stamp[0] + 1e-9 * stamp[1] - clock
+    @property
+    def stamp_ns(self) -> Optional[int]:
+        """Return the header stamp of the newest sample taken [ns] (None before the first)."""
+        return self._stamp
+
+    def _stamp_problem(self, stamp: int, clock: float) -> Optional[str]:
+        """Return why a header stamp [ns] is refused (backwards, or ahead of the clock)."""
+        if self._stamp is not None and self._stamp != 0 and stamp < self._stamp:
+            return 'IMU stamp ran backwards: %.9f s after %.9f s' % (1e-9 * stamp,
+                                                                     1e-9 * self._stamp)
+        ahead = 1e-9 * stamp - clock
         if ahead > self.stamp_tolerance:   # False for a NaN clock
             return ('IMU stamp %.3f s ahead of our clock (stamp_tolerance %.3f s)'
                     % (ahead, self.stamp_tolerance))
