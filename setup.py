@@ -38,6 +38,7 @@ setup(
             'main_job = wheelleg_balance.validation.paper.main_job.cli:main',
             'fault_report = wheelleg_balance.validation.faults.report:main',
             'margins_report = wheelleg_balance.validation.paper.margins_report:main',
+            'tuning = wheelleg_balance.validation.paper.tuning:main',
             'bringup = wheelleg_balance.bringup.cli:main',
         ],
     },

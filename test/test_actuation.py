@@ -88,3 +88,73 @@ def test_forward_torque_gives_forward_wheel_motion(direction):
     motor_vel = math.copysign(5.0, tau_motor)
     assert wheel_velocity(motor_vel, direction) == 5.0
     assert motor_torque(-2.0, direction) == -tau_motor
+
+
+# ------------------------------------------------------------------- the yaw loop's PI + FF
+
+def _turn(ki, ff=0.0, seconds=6.0, scrub=3.9, ref=-2.88, dt=0.002):
+    """
+    Simulate a turn on the spot: yaw inertia 0.33 kg m^2, scrub moment scrub * yaw rate.
+
+    3.9 N m s/rad: 2.1 N m per wheel hold 2.5 rad/s, as in MuJoCo (docs/main_job.md). The
+    wheels' torque difference turns the robot: moment = (tau_right - tau_left) d_w / (2 r_w).
+    Returns the yaw rate [rad/s] after ``seconds``.
+    """
+    from wheelleg_balance.core.actuation import YawLoop
+    loop, rate = YawLoop(ki=ki, ff=ff), 0.0
+    for _ in range(int(seconds / dt)):
+        tl, tr, sat = wheel_torques(0.0, rate, ref, P, 0.3, 12.0, loop.extra(ref))
+        loop.update(rate, ref, dt, sat)
+        moment = (tr - tl) * 0.5 * P.wheel_separation / P.wheel_radius
+        rate += dt * (moment - scrub * rate) / 0.33
+    return rate
+
+
+def test_the_integral_holds_a_turn_the_proportional_term_alone_cannot():
+    from wheelleg_balance.core.config import DEFAULTS
+    paper, pi = _turn(ki=0.0), _turn(ki=DEFAULTS.control.yaw_rate_ki)
+    assert abs(paper) < 0.5 * 2.88                  # the paper's loop: far short
+    assert pi == pytest.approx(-2.88, rel=0.02)     # PI: within 2 % after 6 s
+    # A feed-forward of the scrub (3.9 / (d_w / r_w) N m s/rad) nearly does it alone.
+    ff = 3.9 / (P.wheel_separation / P.wheel_radius)
+    assert _turn(ki=0.0, ff=ff) == pytest.approx(-2.88, rel=0.1)
+
+
+def test_the_integral_is_limited_held_while_saturated_and_reset():
+    from wheelleg_balance.core.actuation import YawLoop
+    loop = YawLoop(ki=10.0, limit=1.5)
+    for _ in range(1000):
+        loop.update(0.0, 5.0, 0.002, saturated=False)
+    assert loop.integral == pytest.approx(1.5)
+    before = loop.integral
+    loop.update(0.0, -100.0, 0.002, saturated=True)   # cut by a limit: no wind-up
+    loop.update(math.nan, 1.0, 0.002, saturated=False)
+    assert loop.integral == before
+    assert loop.extra(math.nan) == before              # a NaN feed-forward counts as zero
+    loop.reset()
+    assert loop.integral == 0.0
+
+
+def test_the_yaw_loop_regulates_the_gyros_yaw_rate_where_there_is_one():
+    """yaw_rate_source imu: a turn the wheels report but the body does not make is no turn."""
+    from wheelleg_balance.core.pipeline import BalanceCore, CoreConfig, Measurement, Reference
+    # The wheels say 1 rad/s to the left; the gyro says the body stands still.
+    w = 1.0 * 0.5 * P.wheel_separation / P.wheel_radius
+    meas = Measurement(0.0, 0.0, -w, w, 0.37, yaw_rate_gyro=0.0)
+
+    def yaw_torque(source, m=meas):
+        core = BalanceCore(P, CoreConfig(controller='lqr', yaw_rate_source=source))
+        core.reset(m)
+        out = core.step(m, Reference(yaw_rate_ref=1.0))
+        return 0.5 * (out.tau_left - out.tau_right)
+    assert yaw_torque('wheels') == pytest.approx(0.0, abs=1e-9)   # at its reference
+    assert yaw_torque('imu') == pytest.approx(-0.3 * 1.0, rel=1e-6)   # P on the full error
+    no_gyro = Measurement(0.0, 0.0, -w, w, 0.37)
+    assert yaw_torque('imu', no_gyro) == pytest.approx(0.0, abs=1e-9)   # falls back to wheels
+
+
+def test_euler_yaw_rate_from_the_gyro():
+    from wheelleg_balance.core.attitude import yaw_rate
+    assert yaw_rate(0.3, 1.0, 0.0, 0.0) == pytest.approx(1.0)
+    assert yaw_rate(0.0, 1.0, 0.0, math.radians(60)) == pytest.approx(2.0)
+    assert yaw_rate(1.0, 0.0, math.radians(90), 0.0) == pytest.approx(1.0)

@@ -219,6 +219,17 @@ def pitch_rate(omega_y: float, omega_z: float, roll: float) -> float:
     return omega_y * math.cos(roll) - omega_z * math.sin(roll)
 
 
+def yaw_rate(omega_y: float, omega_z: float, roll: float, pitch: float) -> float:
+    """
+    Euler yaw rate psi_dot [rad/s] (about the world vertical) from the body-frame gyro [rad/s].
+
+    psi_dot = (omega_y sin(roll) + omega_z cos(roll)) / cos(pitch), exact for z-y'-x'' angles;
+    upright it is omega_z. The robot's true turn rate, which the wheels' speeds overstate when
+    they scrub or slip in a turn on the spot.
+    """
+    return (omega_y * math.sin(roll) + omega_z * math.cos(roll)) / math.cos(pitch)
+
+
 class Attitude(NamedTuple):
     """Body roll and pitch [rad] and where they came from ('orientation', 'gravity', 'none')."""
 

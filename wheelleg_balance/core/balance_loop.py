@@ -245,7 +245,10 @@ def core_config(cfg: BalanceConfig) -> CoreConfig:
     c = cfg.control
     return CoreConfig(controller=c.controller, ida_pbc=cfg.ida_pbc,
                       compensate_offset=c.compensate_offset, d_hat0=c.d_hat0,
-                      yaw_rate_gain=c.yaw_rate_gain, max_wheel_torque=cfg.safety.max_wheel_torque,
+                      yaw_rate_gain=c.yaw_rate_gain, yaw_rate_ki=c.yaw_rate_ki,
+                      yaw_rate_ff=c.yaw_rate_ff, yaw_integral_limit=c.yaw_integral_limit,
+                      yaw_rate_source=c.yaw_rate_source,
+                      max_wheel_torque=cfg.safety.max_wheel_torque,
                       switch_blend_time=c.switch_blend_time,
                       lqr_Q=np.diag(cfg.output_regulation.q_diag),
                       lqr_R=cfg.output_regulation.r, auto=cfg.auto)
@@ -432,6 +435,10 @@ class BalanceLoop:
         core = self.core.config
         core.d_hat0 = cfg.control.d_hat0
         core.yaw_rate_gain = cfg.control.yaw_rate_gain
+        core.yaw_rate_ki = cfg.control.yaw_rate_ki
+        core.yaw_rate_ff = cfg.control.yaw_rate_ff
+        core.yaw_integral_limit = cfg.control.yaw_integral_limit
+        core.yaw_rate_source = cfg.control.yaw_rate_source
         core.max_wheel_torque = cfg.safety.max_wheel_torque
         core.switch_blend_time = cfg.control.switch_blend_time
         core.auto = cfg.auto
@@ -656,7 +663,8 @@ class BalanceLoop:
             self._accel = 0.0
 
     def _measurement(self, s: SensorSnapshot) -> Measurement:
-        return Measurement(s.theta, s.theta_dot, s.wheel_vel_left, s.wheel_vel_right, s.l)
+        return Measurement(s.theta, s.theta_dot, s.wheel_vel_left, s.wheel_vel_right, s.l,
+                           self.imu.yaw_rate)
 
     # ------------------------------------------------------------------------------ modes
 

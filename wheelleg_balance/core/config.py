@@ -51,7 +51,18 @@ class ControlConfig:
     d_hat0: float = param(0.0, 'initial estimate of the IMU pitch offset d [rad] at arm (the '
                           'paper used 2.7 deg)', -0.5, 0.5)
     yaw_rate_gain: float = param(0.3, 'tau_gamma = yaw_rate_gain (yaw rate - yaw rate*) '
-                                 '[N m s/rad], Sec. V-A', 0.0, 10.0)
+                                 '[N m s/rad], Sec. V-A: the proportional term', 0.0, 10.0)
+    yaw_rate_ki: float = param(2.0, "the yaw loop's integral gain [N m/rad] (on yaw rate* - "
+                               "yaw rate; 0: the paper's proportional loop alone)", 0.0, 50.0)
+    yaw_rate_ff: float = param(0.0, "the yaw loop's feed-forward [N m s/rad] of yaw rate* "
+                               "(the tyres' scrub per rad/s, if known)", 0.0, 10.0)
+    yaw_rate_source: str = param('imu', "what the yaw loop regulates: 'imu' (the gyro's yaw "
+                                 "rate: the body's true turn) or 'wheels' (the odometry's, the "
+                                 "paper's: it overstates a turn whose tyres scrub)",
+                                 choices=('imu', 'wheels'))
+    yaw_integral_limit: float = param(4.0, "the yaw loop's integral kept within this [N m] "
+                                      '(held while a torque limit cuts the command)', 0.0,
+                                      100.0)
     switch_blend_time: float = param(0.1, 'controller switch: time over which the jump in u '
                                      'fades out [s]', 0.0, 5.0)
 

@@ -23,7 +23,7 @@ from typing import Optional
 
 import numpy as np
 
-from .actuation import wheel_torques
+from .actuation import wheel_torques, YawLoop
 from .auto_mode import AutoRules, AutoSelector, HOLD, RISE
 from .controller_base import ControlInput
 from .estimation import WheelOdometry
@@ -47,7 +47,8 @@ class Measurement:
 
     theta_meas: IMU pitch theta~ = theta + d [rad]; theta_dot: IMU pitch rate [rad/s];
     wheel_vel_left / wheel_vel_right: wheel angular velocity relative to the leg, forward
-    positive [rad/s]; l: height of the body above the wheel axle [m].
+    positive [rad/s]; l: height of the body above the wheel axle [m]; yaw_rate_gyro: the IMU's
+    yaw rate about the vertical [rad/s] (NaN: none; the yaw loop then uses the wheels').
     """
 
     theta_meas: float
@@ -55,6 +56,7 @@ class Measurement:
     wheel_vel_left: float
     wheel_vel_right: float
     l: float
+    yaw_rate_gyro: float = math.nan
 
 
 @dataclass(frozen=True)
@@ -77,6 +79,10 @@ class CoreConfig:
     causes; the paper leaves the offset in).
     d_hat0: initial estimate of the IMU pitch offset d [rad].
     yaw_rate_gain: Sec. V-A yaw torque gain [N m s/rad] (tau_gamma = gain (yaw rate - yaw rate*)).
+    yaw_rate_ki [N m/rad], yaw_rate_ff [N m s/rad], yaw_integral_limit [N m]: the yaw loop's
+    integral and feed-forward terms (core/actuation.py YawLoop; 0: the paper's loop).
+    yaw_rate_source: what the yaw loop regulates: 'imu' (the gyro, where the measurement has
+    it) or 'wheels' (the odometry's, the paper's).
     max_wheel_torque: per-wheel torque limit [N m].
     switch_blend_time: time over which a controller switch blends out the jump in u [s].
     lqr_Q, lqr_R: LQR weights (None: core/lqr.py defaults).
@@ -87,6 +93,10 @@ class CoreConfig:
     compensate_offset: bool = True
     d_hat0: float = 0.0
     yaw_rate_gain: float = 0.3
+    yaw_rate_ki: float = 0.0
+    yaw_rate_ff: float = 0.0
+    yaw_integral_limit: float = 4.0
+    yaw_rate_source: str = 'imu'
     max_wheel_torque: float = 12.0
     switch_blend_time: float = 0.1
     lqr_Q: Optional[np.ndarray] = None
@@ -148,6 +158,7 @@ class BalanceCore:
         self.odometry = odometry if odometry is not None else WheelOdometry(p)
         self._auto: Optional[AutoSelector] = None
         self._takeover_speed = 0.0   # [m/s], fading out after the auto mode's take-over
+        self.yaw = YawLoop()
         self._active = self.config.controller
         if self._active == 'auto':
             self._auto, self._active = AutoSelector(self.config.auto), RISE
@@ -208,6 +219,7 @@ class BalanceCore:
         self._u_cmd = 0.0
         self._blend_offset = 0.0
         self._blend_step = 0.0
+        self.yaw.reset()
         if self._requested is not None:
             self._active, self._requested = self._requested, None
         if self._auto is not None:
@@ -278,9 +290,16 @@ class BalanceCore:
             u_cmd = 0.0  # never pass a non-finite command on; the supervisor sees theta itself
         self._u_cmd = u_cmd
 
+        c, yaw = self.config, self.yaw
+        yaw.ki, yaw.ff, yaw.limit = c.yaw_rate_ki, c.yaw_rate_ff, c.yaw_integral_limit
+        # The wheels overstate a turn on the spot (their tyres scrub: 165 deg/s by the wheels
+        # was 136 deg/s of true yaw in MuJoCo); the gyro measures the body's.
+        r = meas.yaw_rate_gyro if c.yaw_rate_source == 'imu' \
+            and math.isfinite(meas.yaw_rate_gyro) else yaw_rate
         tau_left, tau_right, saturated = wheel_torques(
-            u_cmd, yaw_rate, ref.yaw_rate_ref, self.p,
-            self.config.yaw_rate_gain, self.config.max_wheel_torque)
+            u_cmd, r, ref.yaw_rate_ref, self.p, c.yaw_rate_gain, c.max_wheel_torque,
+            yaw.extra(ref.yaw_rate_ref))
+        yaw.update(r, ref.yaw_rate_ref, dt, saturated)
         # The force really applied (after the torque limit) is what the observer must see.
         self._u_applied = (tau_left + tau_right) / self.p.wheel_radius
         return TickOutput(

@@ -17,7 +17,7 @@ measurements the tick uses:
 import math
 from typing import NamedTuple, Optional, Sequence, Tuple
 
-from .attitude import body_attitude, ImuMounting, pitch_rate
+from .attitude import body_attitude, ImuMounting, pitch_rate, yaw_rate
 from .kinematics import FiveBarLeg
 
 NAN = math.nan
@@ -75,6 +75,8 @@ class ImuReader:
         self.roll = NAN
         self.theta_dot = NAN
         self.gyro = (NAN, NAN, NAN)
+        #: Yaw rate about the world vertical from the gyro [rad/s] (attitude.yaw_rate).
+        self.yaw_rate = NAN
         self.source = 'none'
         self.frozen = 0
         self._stamp: Optional[int] = None   # the previous header stamp [ns]
@@ -109,6 +111,8 @@ class ImuReader:
         self.gyro = self.mounting.vector_to_body((s.wx, s.wy, s.wz))
         self.theta_dot = pitch_rate(self.gyro[1], self.gyro[2], att.roll) \
             if att.roll == att.roll else self.gyro[1]
+        self.yaw_rate = yaw_rate(self.gyro[1], self.gyro[2], att.roll, att.pitch) \
+            if att.roll == att.roll else self.gyro[2]
         return True
 
     @property

@@ -15,6 +15,7 @@ from typing import Dict, List, Optional, Tuple
 
 from .. import table
 from ..table import D_HAT0, DEG, HEIGHTS, PAPER_YAW_GAIN, SIM_YAW_GAIN
+from ....core.config import DEFAULTS
 from ....core.ida_pbc import TUNED_GAINS
 
 HEIGHT_MAX, HEIGHT_MIN = HEIGHTS[0], HEIGHTS[-1]
@@ -142,11 +143,16 @@ _PLAYS: Dict[str, dict] = {
         press(20.5, HEIGHT_MAX) + [{'t': 25.0, 'v': 0.0}],
         'joy_end': 26.0},
     'rotate': {
-        'duration': 15.0, 'panels': ('yaw_rate', 'torques', 'theta', 'x_dot'),
-        'balance': {'yaw_rate_gain': PAPER_YAW_GAIN},
+        # The paper's proportional loop on the wheels' yaw rate first, then the default yaw
+        # loop (PI on the gyro's) from 9.5 s, judged over the turn's last 3 s.
+        'duration': 17.0, 'panels': ('yaw_rate', 'torques', 'theta', 'x_dot'),
+        'balance': {'yaw_rate_gain': PAPER_YAW_GAIN, 'yaw_rate_ki': 0.0,
+                    'yaw_rate_source': 'wheels'},
         'joy': [{'t': 0.0}] + UP_07 + [{'t': 5.5, 'w': -2.88, 'turbo': True},
-                                       {'t': 13.5, 'w': 0.0, 'turbo': False}],
-        'joy_end': 14.5, 'actions': [(9.5, 'yaw_rate_gain', SIM_YAW_GAIN)]},
+                                       {'t': 15.5, 'w': 0.0, 'turbo': False}],
+        'joy_end': 16.5,
+        'actions': [(9.5, 'yaw_rate_ki', DEFAULTS.control.yaw_rate_ki),
+                    (9.5, 'yaw_rate_source', DEFAULTS.control.yaw_rate_source)]},
     's_turn': {
         'duration': 18.0, 'panels': ('x_dot', 'yaw_rate', 'theta', 'torques'),
         'balance': {'yaw_rate_gain': SIM_YAW_GAIN},

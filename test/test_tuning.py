@@ -1,0 +1,146 @@
+"""
+The ``tuning`` command (validation/paper/tuning.py, issue 12 item 4): its cost and a quick run.
+
+The claims: the cost is deterministic (fixed seeds), a fall ranks behind any run set without
+one, the targets live in one place (TARGETS), the search stays within the parameters' ranges
+with the hysteresis, and ``--quick`` runs end to end and never returns worse than its start.
+"""
+import contextlib
+import io
+import json
+import math
+import time
+
+import numpy as np
+import pytest
+
+from wheelleg_balance.core.params import IdaPbcGains
+from wheelleg_balance.core.simulation import Scenario, simulate
+from wheelleg_balance.validation.paper import tuning
+from wheelleg_balance.validation.paper.experiments import SENSOR_NOISE
+
+DEG = math.pi / 180.0
+
+
+def _noisy_runs():
+    """Return a short noisy start-up and the quick set."""
+    noisy = tuning.Run('startup_noise/test', 'startup', Scenario(
+        controller='auto', duration=2.0, imu_offset=2.2 * DEG, height=0.37,
+        noise_std=SENSOR_NOISE, seed=7))
+    return (noisy,) + tuning.scenarios(quick=True)
+
+
+def test_the_cost_is_deterministic():
+    runs = _noisy_runs()
+    first = tuning.cost(tuning.evaluate(tuning.START, runs), runs)
+    again = tuning.cost(tuning.evaluate(tuning.START, runs), runs)
+    assert first == again
+    assert math.isfinite(first) and first > 0.0
+    # The noise is there: another seed gives another cost.
+    other = (runs[0]._replace(scenario=Scenario(
+        controller='auto', duration=2.0, imu_offset=2.2 * DEG, height=0.37,
+        noise_std=SENSOR_NOISE, seed=8)),) + runs[1:]
+    assert tuning.cost(tuning.evaluate(tuning.START, other), other) != first
+
+
+def _metrics(runs, value, fell=False, saturated_s=0.0):
+    out = {}
+    for run in runs:
+        m = {key: value for key in tuning.TARGETS[run.group]}
+        m.update(fell=fell, saturated_s=saturated_s, peak_torque_nm=0.0, switches=0)
+        out[run.name] = m
+    return out
+
+
+def test_a_fall_costs_more_than_any_run_set_without_one():
+    runs = tuning.scenarios()
+    worst = _metrics(runs, 1e9, saturated_s=1e3)       # every metric far beyond its target
+    best_but_one_fall = _metrics(runs, 0.0)
+    best_but_one_fall[runs[0].name]['fell'] = True
+    assert tuning.cost(worst, runs) <= tuning.max_cost_without_fall() < tuning.FALL_PENALTY
+    assert tuning.cost(best_but_one_fall, runs) > tuning.cost(worst, runs)
+    two_falls = _metrics(runs, 0.0)
+    for run in runs[:2]:
+        two_falls[run.name]['fell'] = True
+    assert tuning.cost(two_falls, runs) > tuning.cost(best_but_one_fall, runs)
+    # Below target the cost still improves; a miss costs more than the small linear term.
+    at_half = tuning.cost(_metrics(runs, 0.5), runs)
+    assert tuning.cost(_metrics(runs, 0.0), runs) < at_half
+    assert at_half < tuning.cost(_metrics(runs, 1e9), runs)
+
+
+def test_a_real_fall_is_penalised():
+    """With almost no damping the start-up at 0.70 m does not survive: the cost says so."""
+    runs = (tuning.Run('startup/fall', 'startup', Scenario(
+        controller='auto', duration=3.0, height=0.70)),)
+    weak = tuning.Candidate(IdaPbcGains(k=0.015, m22_0=0.004, k_v=1e-6, P=0.0),
+                            tuning.START.rules)
+    m = tuning.evaluate(weak, runs)
+    assert m['startup/fall']['fell']
+    assert tuning.cost(m, runs) > tuning.FALL_PENALTY
+
+
+def test_the_targets_are_read_from_one_place(monkeypatch):
+    runs = tuning.scenarios(quick=True)
+    metrics = _metrics(runs, 2.0)
+    base = tuning.cost(metrics, runs)
+    group = runs[0].group
+    key = next(iter(tuning.TARGETS[group]))
+    monkeypatch.setitem(tuning.TARGETS[group], key, 4.0)   # the miss becomes a pass
+    assert tuning.cost(metrics, runs) < base
+    lines = '\n'.join(tuning.table_lines(runs, metrics, metrics))
+    assert '| %s | %s | <= 4 |' % (runs[0].name, key) in lines
+    assert tuning._met(group, key, metrics[runs[0].name]) == 'ok'
+
+
+def test_the_search_stays_in_the_parameter_ranges_with_the_hysteresis():
+    tuning.check_bounds()
+    z0 = tuning.encode(tuning.START)
+    back = tuning.decode(z0).as_dict()
+    for name, value in tuning.START.as_dict().items():
+        assert back[name] == pytest.approx(value, rel=1e-12), name
+    for (lo, hi), z in zip(tuning.search_bounds(), z0):
+        assert lo <= z <= hi
+    c = tuning.hysteresis_constraint()
+    gap = float((c.A @ z0)[0])
+    assert gap == pytest.approx(tuning.START.rules.leave_angle - tuning.START.rules.enter_angle)
+    assert c.lb <= gap
+
+
+def test_the_kicked_plant_is_the_simulation_without_kicks_and_a_kick_tilts_the_body():
+    sc = Scenario(controller='auto', duration=0.6, theta0=0.0, height=0.37)
+    plain = simulate(sc, tuning.make_core(tuning.START))
+    same = tuning.simulate_kicked(sc, tuning.make_core(tuning.START), ())
+    assert np.array_equal(plain.theta, same.theta) and np.array_equal(plain.x, same.x)
+    kicked = tuning.simulate_kicked(sc, tuning.make_core(tuning.START), ((0.2, 0.1, 60.0),))
+    assert np.max(kicked.theta) > np.max(np.abs(plain.theta)) + math.radians(1.0)
+    p = sc.params
+    plant = tuning.KickedPlant(sc, ())
+    plant.force = 60.0
+    th_dd, x_dd = plant._accel(0.0, 0.0, 0.0, 0.37, 0.0, 0.0)
+    assert th_dd == pytest.approx(60.0 / (p.body_mass * 0.37))
+    assert x_dd == pytest.approx(0.0)
+
+
+def test_quick_runs_end_to_end_and_is_no_worse_than_its_start(tmp_path):
+    out = tmp_path / 'report.json'
+    buf = io.StringIO()
+    t0 = time.monotonic()
+    with contextlib.redirect_stdout(buf):
+        assert tuning.main(['--quick', '--output', str(out), '--seed', '3']) == 0
+    assert time.monotonic() - t0 < 60.0
+    report = json.loads(out.read_text())
+    assert report['targets'] == tuning.TARGETS
+    assert report['best']['cost'] <= report['start']['cost']
+    assert report['optimizer']['nfev'] >= 2
+    # The best point's cost is its own cost on the quick set (recomputed from the report).
+    runs = tuning.scenarios(quick=True)
+    best = tuning.candidate_from(report['best']['params'])
+    assert tuning.cost(tuning.evaluate(best, runs), runs) == pytest.approx(
+        report['best']['cost'], rel=1e-12)
+    assert best.rules.enter_angle + tuning.HYSTERESIS_MIN_DEG * DEG <= (
+        best.rules.leave_angle + 1e-12)
+    text = buf.getvalue()
+    for run in runs:
+        assert '| %s |' % run.name in text
+    assert 'before (cost' in text and 'after (cost' in text
