@@ -4,9 +4,12 @@ Validation of the product, apart from it: the paper's experiments, faults, bench
 ``paper``: the paper's experiments on model (1) (``experiments``) and through the real processes
 against the MuJoCo robot (``main_job``), from one table of experiments, metrics and criteria.
 """
+import math
 import os
 import pathlib
-from typing import Dict, Optional
+from typing import Any, Dict, Optional
+
+import numpy as np
 
 
 def package_parent() -> str:
@@ -20,3 +23,18 @@ def child_env(env: Optional[Dict[str, str]] = None) -> Dict[str, str]:
     env['PYTHONPATH'] = os.pathsep.join(p for p in (package_parent(), env.get('PYTHONPATH'))
                                         if p)
     return env
+
+
+def json_safe(value: Any) -> Any:
+    """Return a JSON-safe copy: NaN and infinities become None, numpy scalars plain numbers."""
+    if isinstance(value, dict):
+        return {str(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (float, np.floating)):
+        return float(value) if math.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    return value

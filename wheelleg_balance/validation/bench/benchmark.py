@@ -34,7 +34,7 @@ import numpy as np
 
 from . import core as bench_core, node as bench_node, profiling as bench_profile
 from .stats import check, period_stats
-from .. import child_env
+from .. import child_env, json_safe
 from ...core.pipeline import CONTROLLER_NAMES
 from ...core.realtime import kernel_is_preempt_rt
 
@@ -282,21 +282,6 @@ def print_node(key: str, node: Dict, w) -> None:
           'mean %s ms, p99 %s ms); %s deadlines skipped in the window\n' % figures)
 
 
-def _clean(obj):
-    """JSON-safe copy: NaN and infinities become None, numpy scalars plain numbers."""
-    if isinstance(obj, dict):
-        return {str(k): _clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_clean(v) for v in obj]
-    if isinstance(obj, (np.floating, float)):
-        return float(obj) if math.isfinite(obj) else None
-    if isinstance(obj, np.integer):
-        return int(obj)
-    if isinstance(obj, np.bool_):
-        return bool(obj)
-    return obj
-
-
 # ------------------------------------------------------------------------------------ main
 
 def parse_args(argv=None):
@@ -394,7 +379,7 @@ def main(argv=None) -> int:
     out_dir = os.path.dirname(os.path.abspath(args.output))
     os.makedirs(out_dir, exist_ok=True)
     with open(args.output, 'w') as f:
-        json.dump(_clean(report), f, indent=2, allow_nan=False)
+        json.dump(json_safe(report), f, indent=2, allow_nan=False)
         f.write('\n')
     print()
     print_report(report)

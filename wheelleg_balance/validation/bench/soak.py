@@ -66,6 +66,7 @@ from typing import Dict, List, Optional, Sequence
 import numpy as np
 
 from . import node as bench_node
+from .. import json_safe
 
 #: What the slow subscriber spends on each ~/state message [s] (the node publishes 100 Hz).
 SLOW_CALLBACK = 0.05
@@ -635,18 +636,6 @@ def print_report(report: Dict, out=sys.stdout) -> None:
         w('%s: ERROR %s\n' % (part, err.strip().splitlines()[0] if err.strip() else err))
 
 
-def _clean(obj):
-    if isinstance(obj, dict):
-        return {str(k): _clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_clean(v) for v in obj]
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    if isinstance(obj, np.generic):
-        return _clean(obj.item())
-    return obj
-
-
 def main(argv=None) -> int:
     """Run the soak, or be one of its helper processes (churn, participant, slow)."""
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0].strip())
@@ -700,7 +689,7 @@ def main(argv=None) -> int:
     print_report(report)
     os.makedirs(os.path.dirname(os.path.abspath(args.output)), exist_ok=True)
     with open(args.output, 'w') as f:
-        json.dump(_clean(report), f, indent=1)
+        json.dump(json_safe(report), f, indent=1)
     print('report: %s' % args.output)
     return 1 if report['errors'] else 0
 

@@ -37,6 +37,7 @@ from . import table
 from .metrics import (drift, max_deviation, overshoot, peak_abs, SETTLING_BAND_DEG,
                       settling_band_note, settling_time, tracking_error, window)
 from .table import D_HAT0, DEG, IMU_OFFSET, ROTATE_RATE_DPS
+from .. import json_safe
 from ...core import ida_pbc, lqr
 from ...core.params import IdaPbcGains, RobotParams
 from ...core.simulation import Scenario, SimResult, simulate, TAIL_ANGLE
@@ -119,21 +120,6 @@ def controllers() -> dict:
         out['linear_table_i'] = {'controller': 'lqr', 'linear_gain': table_i(P)}
     out['output_regulation'] = {'controller': 'output_regulation'}
     return out
-
-
-def _clean(value):
-    """Make a value JSON-safe (NaN and inf become null)."""
-    if isinstance(value, dict):
-        return {k: _clean(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_clean(v) for v in value]
-    if isinstance(value, (bool, np.bool_)):
-        return bool(value)
-    if isinstance(value, (float, np.floating)):
-        return float(value) if math.isfinite(value) else None
-    if isinstance(value, np.integer):
-        return int(value)
-    return value
 
 
 def startup(quick: bool) -> tuple:
@@ -473,7 +459,7 @@ def run(output: str, quick: bool = False) -> dict:
         'targets': TARGETS,
         'settling_definition': settling_band_note(),
     }
-    data = _clean(data)
+    data = json_safe(data)
     with open(os.path.join(output, 'experiments.json'), 'w') as f:
         json.dump(data, f, indent=2, sort_keys=False)
     with open(os.path.join(output, 'comparison.md'), 'w') as f:

@@ -83,6 +83,7 @@ from scipy.optimize import brentq, differential_evolution, LinearConstraint
 from .experiments import overshoot_deg, SENSOR_NOISE
 from .metrics import settling_time
 from .table import DEG
+from .. import json_safe
 from ...core.auto_mode import AutoRules
 from ...core.model import ipc_accel_moving
 from ...core.params import IdaPbcGains, RobotParams
@@ -642,20 +643,6 @@ def _candidate_lines(c: Candidate) -> List[str]:
             % (math.degrees(r.enter_angle), math.degrees(r.leave_angle), r.stop_deceleration)]
 
 
-def _clean(value):
-    if isinstance(value, dict):
-        return {k: _clean(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_clean(v) for v in value]
-    if isinstance(value, (bool, np.bool_)):
-        return bool(value)
-    if isinstance(value, (float, np.floating)):
-        return float(value) if math.isfinite(value) else None
-    if isinstance(value, np.integer):
-        return int(value)
-    return value
-
-
 # ------------------------------------------------------------------------------------ main
 
 def tune(maxiter: int, popsize: int, seed: int, quick: bool = False) -> dict:
@@ -705,7 +692,7 @@ def tune(maxiter: int, popsize: int, seed: int, quick: bool = False) -> dict:
     if not quick:
         report['rise_estimate'] = [rise_estimate(l, TARGETS['startup']['overshoot_deg'])
                                    for l in HEIGHTS]
-    return _clean(report)
+    return json_safe(report)
 
 
 def print_report(report: dict, runs: Sequence[Run]) -> None:
