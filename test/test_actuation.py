@@ -135,20 +135,27 @@ def test_the_integral_is_limited_held_while_saturated_and_reset():
     assert loop.integral == 0.0
 
 
-def test_the_yaw_loop_regulates_the_gyros_yaw_rate_where_there_is_one():
-    """yaw_rate_source imu: a turn the wheels report but the body does not make is no turn."""
+def test_the_yaw_loops_integral_acts_on_the_gyros_yaw_rate_where_there_is_one():
+    """
+    yaw_rate_source imu: a turn the wheels report but the body does not make is no turn.
+
+    The proportional term stays on the wheels' yaw rate (it damps a free wheel).
+    """
     from wheelleg_balance.core.pipeline import BalanceCore, CoreConfig, Measurement, Reference
-    # The wheels say 1 rad/s to the left; the gyro says the body stands still.
+    # The wheels say 1 rad/s to the left, as asked; the gyro says the body stands still.
     w = 1.0 * 0.5 * P.wheel_separation / P.wheel_radius
     meas = Measurement(0.0, 0.0, -w, w, 0.37, yaw_rate_gyro=0.0)
 
-    def yaw_torque(source, m=meas):
-        core = BalanceCore(P, CoreConfig(controller='lqr', yaw_rate_source=source))
+    def yaw_torque(source, m=meas, ticks=250):
+        core = BalanceCore(P, CoreConfig(controller='lqr', yaw_rate_source=source,
+                                         yaw_rate_ki=2.0))
         core.reset(m)
-        out = core.step(m, Reference(yaw_rate_ref=1.0))
+        for _ in range(ticks):
+            out = core.step(m, Reference(yaw_rate_ref=1.0))
         return 0.5 * (out.tau_left - out.tau_right)
     assert yaw_torque('wheels') == pytest.approx(0.0, abs=1e-9)   # at its reference
-    assert yaw_torque('imu') == pytest.approx(-0.3 * 1.0, rel=1e-6)   # P on the full error
+    # Integral on the gyro's error: 2.0 N m/rad x 1 rad/s x 0.5 s, turning left (negative).
+    assert yaw_torque('imu') == pytest.approx(-2.0 * 1.0 * 0.5, rel=0.01)
     no_gyro = Measurement(0.0, 0.0, -w, w, 0.37)
     assert yaw_torque('imu', no_gyro) == pytest.approx(0.0, abs=1e-9)   # falls back to wheels
 

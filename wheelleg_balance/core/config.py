@@ -56,9 +56,10 @@ class ControlConfig:
                                "yaw rate; 0: the paper's proportional loop alone)", 0.0, 50.0)
     yaw_rate_ff: float = param(0.0, "the yaw loop's feed-forward [N m s/rad] of yaw rate* "
                                "(the tyres' scrub per rad/s, if known)", 0.0, 10.0)
-    yaw_rate_source: str = param('imu', "what the yaw loop regulates: 'imu' (the gyro's yaw "
-                                 "rate: the body's true turn) or 'wheels' (the odometry's, the "
-                                 "paper's: it overstates a turn whose tyres scrub)",
+    yaw_rate_source: str = param('imu', "the yaw rate the yaw loop's integral acts on: 'imu' "
+                                 "(the gyro's: the body's true turn) or 'wheels' (the "
+                                 "odometry's, which overstates a turn whose tyres scrub); the "
+                                 "proportional term always damps the wheels' own",
                                  choices=('imu', 'wheels'))
     yaw_integral_limit: float = param(4.0, "the yaw loop's integral kept within this [N m] "
                                       '(held while a torque limit cuts the command)', 0.0,

@@ -81,8 +81,8 @@ class CoreConfig:
     yaw_rate_gain: Sec. V-A yaw torque gain [N m s/rad] (tau_gamma = gain (yaw rate - yaw rate*)).
     yaw_rate_ki [N m/rad], yaw_rate_ff [N m s/rad], yaw_integral_limit [N m]: the yaw loop's
     integral and feed-forward terms (core/actuation.py YawLoop; 0: the paper's loop).
-    yaw_rate_source: what the yaw loop regulates: 'imu' (the gyro, where the measurement has
-    it) or 'wheels' (the odometry's, the paper's).
+    yaw_rate_source: the yaw rate the integral acts on: 'imu' (the gyro, where the
+    measurement has it) or 'wheels' (the odometry's); the proportional term is the wheels'.
     max_wheel_torque: per-wheel torque limit [N m].
     switch_blend_time: time over which a controller switch blends out the jump in u [s].
     lqr_Q, lqr_R: LQR weights (None: core/lqr.py defaults).
@@ -292,14 +292,17 @@ class BalanceCore:
 
         c, yaw = self.config, self.yaw
         yaw.ki, yaw.ff, yaw.limit = c.yaw_rate_ki, c.yaw_rate_ff, c.yaw_integral_limit
-        # The wheels overstate a turn on the spot (their tyres scrub: 165 deg/s by the wheels
-        # was 136 deg/s of true yaw in MuJoCo); the gyro measures the body's.
-        r = meas.yaw_rate_gyro if c.yaw_rate_source == 'imu' \
+        # The proportional term acts on the wheels' yaw rate: it damps the wheels' speed
+        # difference, which keeps a wheel in the air from running free (with it on the gyro, a
+        # wheel dropping off MuJoCo's ramp spun up into the lifted fault). The integral acts on
+        # the gyro's: the wheels overstate a turn on the spot (their tyres scrub: 165 deg/s by
+        # the wheels was 136 deg/s of true yaw), so only the gyro's error brings the true rate.
+        r_int = meas.yaw_rate_gyro if c.yaw_rate_source == 'imu' \
             and math.isfinite(meas.yaw_rate_gyro) else yaw_rate
         tau_left, tau_right, saturated = wheel_torques(
-            u_cmd, r, ref.yaw_rate_ref, self.p, c.yaw_rate_gain, c.max_wheel_torque,
+            u_cmd, yaw_rate, ref.yaw_rate_ref, self.p, c.yaw_rate_gain, c.max_wheel_torque,
             yaw.extra(ref.yaw_rate_ref))
-        yaw.update(r, ref.yaw_rate_ref, dt, saturated)
+        yaw.update(r_int, ref.yaw_rate_ref, dt, saturated)
         # The force really applied (after the torque limit) is what the observer must see.
         self._u_applied = (tau_left + tau_right) / self.p.wheel_radius
         return TickOutput(
