@@ -25,7 +25,6 @@ explicit re-arm or disarm. See docs/balance_node.md.
 import gc
 import itertools
 import math
-import os
 import signal
 import subprocess
 import sys
@@ -127,8 +126,7 @@ class BalanceNode(Node):
         self.link = L.Link(ros_end)
         self._child: Optional[subprocess.Popen] = None
         self._intake: Optional[subprocess.Popen] = None
-        self._watchdog: Optional[subprocess.Popen] = None
-        self.heartbeat: Optional[watchdog.Heartbeat] = None
+        self.watchdog: Optional[watchdog.WatchdogProcess] = None
         self._runner: Optional[ControlRunner] = None
         self._runner_thread: Optional[threading.Thread] = None
         self._reader = threading.Thread(target=self._read_link, name='balance_link',
@@ -148,7 +146,8 @@ class BalanceNode(Node):
             if not (self._status or {}).get('intake_ready'):
                 raise RuntimeError('sensor intake did not start (exit code %s)'
                                    % self._intake.poll())
-            self._wait_watchdog(end)
+            if self.watchdog is not None:   # none with an in-process bus
+                self.watchdog.wait(end)
         except BaseException:
             # Whatever stopped the start (an error, a signal), the motors end at zero torque.
             self.shutdown()
@@ -191,8 +190,8 @@ class BalanceNode(Node):
                                                    name='balance_control', daemon=True)
             self._runner_thread.start()
             return
-        self.heartbeat = watchdog.Heartbeat()
-        fds = (L.inheritable(loop_end), L.inheritable(sensor_end), self.heartbeat.fd)
+        self.watchdog = watchdog.WatchdogProcess(self.config.safety.watchdog_timeout)
+        fds = (L.inheritable(loop_end), L.inheritable(sensor_end), self.watchdog.heartbeat.fd)
         self._child = subprocess.Popen(
             [sys.executable, '-m', 'wheelleg_balance.nodes.control_process', '--fd',
              str(fds[0]), '--sensor-fd', str(fds[1]), '--heartbeat-fd', str(fds[2])],
@@ -201,19 +200,7 @@ class BalanceNode(Node):
         loop_end.close()
         sensor_end.close()
         self.link.send_object(L.PARAMS, to_flat(self.config))
-        self._watchdog = subprocess.Popen(
-            watchdog.command(self.heartbeat.fd, self._child.pid, to_flat(self.config)),
-            pass_fds=(self.heartbeat.fd,))
-
-    def _wait_watchdog(self, end: float) -> None:
-        """Wait until the watchdog watches (no arming before); none with an in-process bus."""
-        if self._watchdog is None:
-            return
-        while self.heartbeat.state()[0] == watchdog.STARTING and time.monotonic() < end \
-                and self._watchdog.poll() is None:
-            time.sleep(0.02)
-        if self.heartbeat.state()[0] != watchdog.WATCHING:
-            raise RuntimeError('watchdog did not start (exit code %s)' % self._watchdog.poll())
+        self.watchdog.start(self._child.pid, to_flat(self.config))
 
     def _start_intake(self, intake_end) -> None:
         fd = L.inheritable(intake_end)
@@ -374,16 +361,8 @@ class BalanceNode(Node):
     def diagnostics(self, now: float):
         """Build the DiagnosticArray of the newest status of the control loop."""
         return diagnostic_array(self._status, self._hardware_id, now, ALIVE_LIMIT,
-                                self.get_clock().now().to_msg(), self.watchdog_state())
-
-    def watchdog_state(self) -> Optional[dict]:
-        """Return the watchdog's state (Heartbeat.describe); None with an in-process bus."""
-        if self.heartbeat is None or self._watchdog is None:
-            return None
-        out = self.heartbeat.describe()
-        out['running'] = self._watchdog.poll() is None
-        out['timeout'] = self.config.safety.watchdog_timeout
-        return out
+                                self.get_clock().now().to_msg(),
+                                None if self.watchdog is None else self.watchdog.state())
 
     # ------------------------------------------------------------------------------ shutdown
 
@@ -402,14 +381,11 @@ class BalanceNode(Node):
             self._runner.shutdown()
         if self._child is not None:
             _end_child(self._child, self.link)
-        if self._watchdog is not None:   # it ends by itself once the loop has ended
-            end_process(self._watchdog, timeout=1.0)
         if self._reader.is_alive():
             self._reader.join(timeout=1.0)
         self.link.close()
-        if self.heartbeat is not None:
-            self.heartbeat.close()
-            os.close(self.heartbeat.fd)
+        if self.watchdog is not None:
+            self.watchdog.close()
 
     def stop_loop(self) -> None:
         """Tell the control loop to stop now: zero torque, exit frames (from a signal handler)."""

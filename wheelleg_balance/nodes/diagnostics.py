@@ -157,7 +157,7 @@ def diagnostic_array(st: Optional[Dict[str, Any]], hardware_id: str, now: float,
     """
     Build the whole DiagnosticArray; without any status yet, one ERROR 'no control loop'.
 
-    watchdog: its state (BalanceNode.watchdog_state), None when there is none (in-process bus).
+    watchdog: its state (nodes/watchdog.py WatchdogProcess.state), None without one.
     """
     msg = DiagnosticArray()
     msg.header.stamp = stamp

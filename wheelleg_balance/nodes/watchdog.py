@@ -171,6 +171,49 @@ def command(heartbeat_fd: int, pid: int, params: dict):
             str(heartbeat_fd), '--pid', str(pid), '--params', json.dumps(params)]
 
 
+class WatchdogProcess:
+    """
+    balance_node's side of the watchdog: its heartbeat, its process, its state.
+
+    ``heartbeat.fd`` goes to the control process (``--heartbeat-fd``); ``start`` then starts the
+    watchdog for that process's pid; ``wait`` returns once it watches (no arming before).
+    """
+
+    def __init__(self, timeout: float):
+        self.heartbeat = Heartbeat()
+        self.timeout = timeout
+        self.process = None
+
+    def start(self, pid: int, params: dict) -> None:
+        """Start the watchdog of control process ``pid`` (``params``: flat configuration)."""
+        import subprocess
+        self.process = subprocess.Popen(command(self.heartbeat.fd, pid, params),
+                                        pass_fds=(self.heartbeat.fd,))
+
+    def wait(self, until: float) -> None:
+        """Wait until it watches, at most until ``until`` [s, monotonic]; RuntimeError if not."""
+        while self.heartbeat.state()[0] == STARTING and time.monotonic() < until \
+                and self.process.poll() is None:
+            time.sleep(0.02)
+        if self.heartbeat.state()[0] != WATCHING:
+            raise RuntimeError('watchdog did not start (exit code %s)' % self.process.poll())
+
+    def state(self) -> dict:
+        """Return its state for /diagnostics (Heartbeat.describe, running, timeout)."""
+        out = self.heartbeat.describe()
+        out['running'] = self.process is not None and self.process.poll() is None
+        out['timeout'] = self.timeout
+        return out
+
+    def close(self) -> None:
+        """End it (it ends by itself once the loop has ended) and free the shared memory."""
+        from ..processes import end_process
+        if self.process is not None:
+            end_process(self.process, timeout=1.0)
+        self.heartbeat.close()
+        os.close(self.heartbeat.fd)
+
+
 def _process_watch(pid: int) -> Tuple[Callable[[], bool], Callable[[float], None]]:
     """
     Return (alive(), wait(dt)) for process ``pid``, on a pidfd (no confusion with a reused pid).
