@@ -231,3 +231,29 @@ def test_the_tick_neither_auto_arms_nor_arms_while_unguarded():
     bench.tick()
     assert not req.success and 'watchdog' in req.message
     assert bench.mode == MODE['DISARMED']
+
+
+def test_a_gap_before_arming_is_no_loop_stall_but_one_while_balancing_is():
+    """
+    A tick long after the previous one: harmless before arming (no torque of ours was held).
+
+    In lockstep with auto_arm the first ticks come in a burst once the loop runs: the tick that
+    armed saw a 1.1 s gap and faulted `loop_stall` at once (the sim-files test beside a CPU hog).
+    """
+    from wheelleg_balance.validation.faults.bench import LoopBench, MODE
+    bench = LoopBench()
+    bench.feed()
+    bench.estop()
+    bench.tick()                      # stop frames: the motors answer at the next tick
+    bench.t += 1.1                    # the loop did not run for 1.1 s, then arms at once
+    bench.feed()
+    req = bench.request(True)
+    bench.tick()
+    assert req.success and bench.mode == MODE['BALANCING'], bench.safety_values()['faults']
+    bench.feed()
+    bench.tick()
+    bench.t += 1.1                    # now a stall while balancing: FAULT loop_stall
+    bench.feed()
+    bench.tick()
+    assert bench.mode == MODE['FAULT']
+    assert 'loop_stall' in [c for c, _ in bench.safety_values()['faults']]

@@ -502,6 +502,7 @@ class BalanceLoop:
         self._take(inputs)
         s = self._read_samples(now)
         sup = self.supervisor
+        commanded = sup.mode in COMMANDING   # since the previous tick (before any arming now)
         if sup.mode not in (Mode.BALANCING, Mode.SITTING) and s.imu_time is not None \
                 and s.joint_time is not None and sup.limits.plausible(s):
             self.odometry.update(s.wheel_vel_left, s.wheel_vel_right, s.theta_dot, dt)
@@ -535,7 +536,8 @@ class BalanceLoop:
         sup.update(now, s, self._reply_times())
         if sensor_conflict:   # samples from two sources cannot be trusted
             sup.report_fault(now, INPUT_CONFLICT, sensor_conflict)
-        self._check_stall(now, dt)
+        if commanded:   # a gap before arming held no torque of ours
+            self._check_stall(now, dt)
         self._check_lift(now, s, dt)
         mode = sup.mode
         if mode is Mode.FAULT and before in COMMANDING:
