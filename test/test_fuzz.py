@@ -426,12 +426,7 @@ class SixMotorBench(fb.LoopBench):
                 e.last_decoded = None
             self._replies += self.motors.handle(f, self.t)
             out.append((f.arbitration_id, None if e is None else e.last_decoded))
-        self.loop.report_send(self.t, self.fail_with)
-        req = self._request
-        if req is not None and result.arm_reply is not None:
-            req.success, req.message = result.arm_reply
-            req.done = True
-            self._request = None
+        self.after_tick(result)
         if self.follow:
             for motor_id, cmd in out:
                 if isinstance(cmd, MitCommand) and cmd.kp > 0.0 and motor_id in self.hip_ids:

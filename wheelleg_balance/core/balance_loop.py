@@ -230,14 +230,14 @@ def all_stop_frames(cfg: BalanceConfig) -> Tuple[List[Frame], List[Frame]]:
     What the loop sends at start-up and shutdown (BalanceLoop.stop_frames), built from the
     configuration alone for the watchdog (nodes/watchdog.py), which has no loop.
     """
-    wheels = build_protocol(cfg)
-    frames = wheels.zero_torque_frames(
-        (cfg.can.left_motor_id, cfg.can.right_motor_id)) + wheels.disable_frames(
-        (cfg.can.left_motor_id, cfg.can.right_motor_id))
+    # Directions do not matter for zero torque and exit: MotorSet.stop_frames is the recipe.
+    wheels = MotorSet(build_protocol(cfg), ((LEFT_WHEEL, cfg.can.left_motor_id, 1),
+                                            (RIGHT_WHEEL, cfg.can.right_motor_id, 1)))
     if not cfg.legs.driven:
-        return frames, []
-    hips, ids = MitProtocol(**cfg.legs.mit.codec_ranges()), tuple(cfg.legs.motor_ids)
-    return frames, hips.zero_torque_frames(ids) + hips.disable_frames(ids)
+        return wheels.stop_frames(), []
+    hips = MotorSet(MitProtocol(**cfg.legs.mit.codec_ranges()),
+                    [(name, i, 1) for name, i in zip(HIPS, cfg.legs.motor_ids)])
+    return wheels.stop_frames(), hips.stop_frames()
 
 
 def core_config(cfg: BalanceConfig) -> CoreConfig:
@@ -441,7 +441,6 @@ class BalanceLoop:
         core.yaw_rate_source = cfg.control.yaw_rate_source
         core.max_wheel_torque = cfg.safety.max_wheel_torque
         core.switch_blend_time = cfg.control.switch_blend_time
-        core.auto = cfg.auto
         self.core.set_auto_rules(cfg.auto)
         self.supervisor.limits = safety_limits(cfg)
         sh, ref = self.shaper, cfg.reference

@@ -371,7 +371,7 @@ class BalanceNode(Node):
         if self._closing.is_set():
             return
         self._closing.set()
-        self.link.send_object(L.STOP, None)   # first: the intake takes a while to end
+        self.stop_loop()   # first: the intake takes a while to end
         if self._intake is not None:
             end_process(self._intake)
         if self._runner is not None:

@@ -200,13 +200,17 @@ class LoopBench:
         self.inputs.clear()
         self.sent = [] if self.fail_with is not None else list(result.frames)
         self._replies = [r for f in self.sent for r in self.motors.handle(f, self.t)]
+        self.after_tick(result)
+        return [(f.arbitration_id, decode(f.arbitration_id, f.data)) for f in self.sent]
+
+    def after_tick(self, result) -> None:
+        """Report the tick's send to the loop and answer a pending arm request with its reply."""
         self.loop.report_send(self.t, self.fail_with)
         req = self._request
         if req is not None and result.arm_reply is not None:
             req.success, req.message = result.arm_reply
             req.done = True
             self._request = None
-        return [(f.arbitration_id, decode(f.arbitration_id, f.data)) for f in self.sent]
 
     def estop(self) -> None:
         """Hand an emergency stop to the next tick (zero torque, exit: no sit-down)."""
