@@ -66,6 +66,7 @@ def run_scenario(name, context, record_property):
         record_property('retried', text)
         warnings.warn(text)
         out = SCENARIOS[name](context)
+    record_property('figures', out.figures)
     assert_handled(out)
 
 

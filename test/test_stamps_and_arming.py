@@ -126,6 +126,31 @@ def test_auto_arm_arms_once_and_never_after_an_operator_disarm():
     assert bench.mode == int(Mode.DISARMED)
 
 
+def test_auto_arm_waits_for_steady_ticks_after_a_gap():
+    """
+    After a gap beyond the sensor timeouts auto_arm waits AUTO_ARM_STEADY of steady ticks.
+
+    In lockstep the first samples can come as a burst of old stamps: the tick that armed on one
+    of them was followed by one 0.38 s of stamps later, and the motors counted as silent since
+    the arm (FAULT, the sim-files test). Ticks on fresh samples after the gap: no arm at once.
+    """
+    from wheelleg_balance.core.balance_loop import AUTO_ARM_STEADY
+    bench = LoopBench(auto_arm=True)
+    bench.feed()
+    bench.tick()
+    assert bench.mode == int(Mode.DISARMED)   # not yet steady for AUTO_ARM_STEADY
+    bench.t += 0.38                           # then a gap beyond imu_timeout (fresh samples)
+    steady = int(round(AUTO_ARM_STEADY / bench.period))
+    modes = []
+    for _ in range(steady + 5):
+        bench.feed()
+        bench.tick()
+        modes.append(bench.mode)
+    assert set(modes[:steady]) == {int(Mode.DISARMED)}, modes
+    assert bench.mode == int(Mode.BALANCING)
+    assert int(Mode.FAULT) not in modes
+
+
 def test_auto_arm_does_not_retry_after_its_enter_motor_mode_send_failed():
     bench = LoopBench(auto_arm=True)
     tick, attempts = bench.loop.tick, []

@@ -145,6 +145,18 @@ def test_the_heartbeat_is_shared_through_its_fd(heartbeat):
         os.close(other.fd)
 
 
+def test_diagnostics_read_a_closed_heartbeat_as_closed_not_an_exception():
+    """balance_node's diagnostics timer may run while shutdown() unmaps the heartbeat (CI)."""
+    hb = wd.Heartbeat()
+    hb.set_state(wd.WATCHING)
+    assert hb.describe()['state'] == wd.WATCHING
+    hb.close()
+    os.close(hb.fd)
+    out = hb.describe()
+    assert out['state'] == wd.CLOSED and not out['fired'] and out['text'] == wd.STATE_TEXT[
+        wd.CLOSED]
+
+
 @pytest.mark.parametrize('legs', [False, True])
 def test_the_watchdog_stops_every_motor_as_the_loop_does(legs):
     """all_stop_frames: zero torque then exit for each wheel (and hip) motor, as the loop's."""

@@ -97,6 +97,11 @@ class CmdHeight(NamedTuple):
     height: float
 
 
+#: auto_arm waits until the ticks have come without a gap beyond the sensor timeouts for this
+#: long [s]. In lockstep (clock_source imu_stamp) the first samples can come as a burst of old
+#: stamps: a tick armed on one of them and the next, 0.38 s of stamps later, faulted the motors
+#: as silent since the arm (sim-files test, 2026-12-02).
+AUTO_ARM_STEADY = 0.05
 #: The inputs whose conflicts are about the sensors (TickInputs.conflicts): FAULT, no arming.
 SENSOR_INPUTS = ('imu', 'joint_states')
 
@@ -400,6 +405,8 @@ class BalanceLoop:
         self._pending_reply: Optional[Tuple[str, bool, str]] = None
         self._auto_arm = cfg.safety.auto_arm
         self._last_now: Optional[float] = None
+        #: The tick since which no gap beyond the sensor timeouts came [s] (AUTO_ARM_STEADY).
+        self._steady_since: Optional[float] = None
         self._ticks = 0
         self._x = 0.0
         self._d_hat = 0.0
@@ -495,6 +502,8 @@ class BalanceLoop:
         r.frames, r.leg_frames, r.arm_reply, r.events = [], [], None, []
         dt = self.period if self._last_now is None else now - self._last_now
         self._last_now = now
+        if self._steady_since is None or dt > self._stall_limit():
+            self._steady_since = now
         self._ticks += 1
         if inputs.params:
             self.apply_parameters(inputs.params)
@@ -527,7 +536,8 @@ class BalanceLoop:
                 self._handle_arm(inputs.arm, now, s)
             self._lifted = self._lifted and sup.mode not in COMMANDING
         elif self._auto_arm and inputs.guarded and not sensor_conflict \
-                and sup.mode is Mode.DISARMED and self._can_arm(now, s):
+                and sup.mode is Mode.DISARMED and now - self._steady_since >= AUTO_ARM_STEADY \
+                and self._can_arm(now, s):
             self._auto_arm = False  # at most once per start, whatever the outcome
             self._handle_arm(True, now, s)
             r.events.append(('info', 'auto_arm: %s' % self._pending_reply[2]))
@@ -618,10 +628,14 @@ class BalanceLoop:
             s.l = self._height
         return s
 
+    def _stall_limit(self) -> float:
+        """Return the longest gap between two ticks [s] that is no stall: the sensor timeouts."""
+        lim = self.supervisor.limits
+        return min(lim.imu_timeout, lim.joint_state_timeout)
+
     def _check_stall(self, now: float, dt: float) -> None:
         """Fault when the loop was late beyond the sensor timeouts (it was blind meanwhile)."""
-        lim = self.supervisor.limits
-        limit = min(lim.imu_timeout, lim.joint_state_timeout)
+        limit = self._stall_limit()
         if dt > limit and self.supervisor.mode in COMMANDING:
             self.supervisor.report_fault(now, LOOP_STALL, 'control loop stalled %.1f ms (longer '
                                          'than the sensor timeouts, %.0f ms)'

@@ -338,6 +338,8 @@ class BalanceNode(Node):
     # ---------------------------------------------------------------------------- diagnostics
 
     def _on_diagnostics_timer(self) -> None:
+        if self._closing.is_set():   # the executor may still spin while shutdown() runs
+            return
         st = self._status
         key = None if st is None else (st['mode'], tuple(st['faults']))
         now = time.monotonic()

@@ -47,10 +47,12 @@ COMMANDING = 1
 ENDED = 2
 #: Watchdog states.
 STARTING, WATCHING, FIRED_STALL, FIRED_DIED, ENDED_CLEAN = 0, 1, 2, 3, 4
+#: Not a state in the shared memory: the heartbeat is unmapped (balance_node shutting down).
+CLOSED = 5
 STATE_TEXT = {STARTING: 'starting', WATCHING: 'watching',
               FIRED_STALL: 'fired: the control loop stalled',
               FIRED_DIED: 'fired: the control process died while commanding',
-              ENDED_CLEAN: 'ended'}
+              ENDED_CLEAN: 'ended', CLOSED: 'closed (node shutting down)'}
 #: Polls per watchdog_timeout (the reaction is the timeout plus at most one poll).
 POLLS_PER_TIMEOUT = 10
 #: A stale heartbeat is read again this much later before the watchdog fires [s]: two reads
@@ -86,8 +88,11 @@ class Heartbeat:
         _DOG.pack_into(self._map, _DOG_OFFSET, state, stall)
 
     def state(self) -> Tuple[int, float]:
-        """Return (the watchdog's state, the heartbeat age [s] it fired at)."""
-        return _DOG.unpack_from(self._map, _DOG_OFFSET)
+        """Return (the watchdog's state, the heartbeat age [s] it fired at); CLOSED once closed."""
+        try:
+            return _DOG.unpack_from(self._map, _DOG_OFFSET)
+        except ValueError:   # unmapped by close() in another thread (a diagnostics timer)
+            return CLOSED, 0.0
 
     def describe(self) -> dict:
         """Return the watchdog's state for /diagnostics."""
