@@ -73,6 +73,48 @@ def test_the_robot_file_states_the_defaults():
         differ,)
 
 
+def test_the_paper_file_over_the_robot_file_is_table_i_as_certified():
+    """
+    config/paper_table_i.yaml over config/balance.yaml: Table I's gains, the rest the robot's.
+
+    The same set core/margins.py certifies as 'table_i', down to the torques: the tick built
+    from the two files and margins.build_core('table_i') give one u for the same state.
+    """
+    import numpy as np
+    from wheelleg_balance.core import margins
+    from wheelleg_balance.core.balance_loop import core_config
+    from wheelleg_balance.core.lqr import table_i_force_gain
+    from wheelleg_balance.core.pipeline import BalanceCore
+
+    def flat(name):
+        doc = yaml.safe_load((REPO / 'config' / name).read_text())
+        return flatten_yaml(doc['balance_node']['ros__parameters'])
+    robot, paper = flat('balance.yaml'), flat('paper_table_i.yaml')
+    cfg = from_flat(BalanceConfig, {**robot, **paper})
+    assert check(cfg) == []
+    assert cfg.ida_pbc == margins.TABLE_I_IDA_PBC
+    assert cfg.output_regulation.gain_source == 'table_i'
+    assert (cfg.control.yaw_rate_ki, cfg.control.yaw_rate_ff) == (0.0, 0.0)   # Sec. V-A
+    # Only gains: nothing of the safety envelope, the wiring or the legs.
+    assert set(paper) <= {k for k in paper if k.startswith(('ida_pbc.', 'output_regulation.',
+                                                            'yaw_rate_'))}
+    from wheelleg_balance.core.pipeline import Measurement, Reference
+    for name in ('ida_pbc', 'output_regulation', 'lqr'):
+        ours, certified = BalanceCore(cfg.model, core_config(cfg)), margins.build_core('table_i')
+        for core in (ours, certified):
+            core.select(name)
+            core.reset(Measurement(0.05, 0.0, 0.0, 0.0, 0.45))
+        for k in range(20):   # a tilted start, the same measurements into both
+            m = Measurement(0.05 - 0.001 * k, -0.1, 0.3, 0.3, 0.45)
+            u, u_certified = ours.step(m, Reference()).u_cmd, certified.step(m, Reference()).u_cmd
+            assert u == u_certified and u != 0.0, (name, k)
+    for l in (0.37, 0.55, 0.70):
+        assert np.allclose(ours.schedule.gain(l), table_i_force_gain(cfg.model))
+    robot_cfg = from_flat(BalanceConfig, robot)
+    assert not np.allclose(BalanceCore(robot_cfg.model, core_config(robot_cfg)).schedule.gain(
+        0.37), table_i_force_gain(cfg.model))   # the robot's file: the LQR schedule
+
+
 @pytest.mark.parametrize('cls', list(NODE_CONFIGS.values()))
 def test_every_parameter_is_documented_and_has_a_valid_default(cls):
     for s in specs(cls):

@@ -20,7 +20,7 @@ from scipy.signal import cont2discrete, dfreqresp, StateSpace
 from wheelleg_balance.core import margins
 from wheelleg_balance.core.config import BalanceConfig
 from wheelleg_balance.core.ida_pbc import ida_pbc_terms
-from wheelleg_balance.core.lqr import table_i_force_gain
+from wheelleg_balance.core.lqr import FixedGain, table_i_force_gain
 from wheelleg_balance.core.model import linearize
 from wheelleg_balance.core.output_regulation import LqrController
 from wheelleg_balance.core.pipeline import CONTROLLER_NAMES, Measurement, Reference
@@ -196,7 +196,7 @@ def test_negated_or_tenfold_feedback_is_unstable():
 
 def test_table_i_as_a_force_gain_is_reported_unstable():
     c = core('default')
-    ctrl = LqrController(P, margins.FixedGain(table_i_force_gain(P, 'force')))
+    ctrl = LqrController(P, FixedGain(table_i_force_gain(P, 'force')))
     for l in (0.37, 0.52, 0.70):
         m = margins.loop_margins(margins.build_loop(ctrl, c.observer, l, P, DT), l)
         assert not m.stable and m.spectral_radius > 1.0

@@ -256,7 +256,8 @@ def core_config(cfg: BalanceConfig) -> CoreConfig:
                       max_wheel_torque=cfg.safety.max_wheel_torque,
                       switch_blend_time=c.switch_blend_time,
                       lqr_Q=np.diag(cfg.output_regulation.q_diag),
-                      lqr_R=cfg.output_regulation.r, auto=cfg.auto)
+                      lqr_R=cfg.output_regulation.r,
+                      linear_gain_source=cfg.output_regulation.gain_source, auto=cfg.auto)
 
 
 def safety_limits(cfg: BalanceConfig) -> SafetyLimits:

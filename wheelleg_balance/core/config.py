@@ -17,7 +17,7 @@ import math
 from typing import List
 
 from .auto_mode import AutoRules
-from .lqr import DEFAULT_Q, DEFAULT_R
+from .lqr import DEFAULT_Q, DEFAULT_R, GAIN_SOURCES
 from .params import IdaPbcGains, RobotParams
 from .pipeline import MODES
 from .protocols import PROTOCOLS
@@ -76,6 +76,12 @@ class OutputRegulationConfig:
                                 'LQR state weights diag(Q) for [theta, theta_dot, x, x_dot] '
                                 '(k_x = lqr(A(l), B(l)))', 0.0, 1e12, read_only=RO, length=4)
     r: float = param(DEFAULT_R, 'LQR input weight R [1/N^2]', 1e-9, 1e6, read_only=RO)
+    gain_source: str = param('lqr', 'the k_x of both linear controllers (output_regulation, '
+                             'lqr): lqr = lqr(A(l), B(l)) from q_diag and r at each height; '
+                             "table_i = Table I's k_x [150, 12, 0.001, 10] at every height, "
+                             "read as each wheel's torque (x 2 / r_w; docs/linear_control.md; "
+                             'config/paper_table_i.yaml)', read_only=RO,
+                             choices=GAIN_SOURCES)
 
 
 @dataclass(frozen=True)

@@ -79,6 +79,42 @@ def table_i_force_gain(p: RobotParams = RobotParams(), reading: str = 'per_wheel
     return factor * TABLE_I_K_X
 
 
+class FixedGain:
+    """
+    One k_x at every height, with GainSchedule's interface (Table I's set: the paper's gains).
+
+    k_x: u = k_x @ xi [N/rad, N s/rad, N/m, N s/m].
+    """
+
+    def __init__(self, k_x):
+        self.k_x = tuple(float(v) for v in k_x)
+
+    def gain_floats(self, l: float) -> tuple:
+        """Return k_x (u = k_x @ xi) [N/rad, N s/rad, N/m, N s/m] whatever l [m]."""
+        return self.k_x
+
+    def gain(self, l: float) -> np.ndarray:
+        """Return k_x as an array."""
+        return np.array(self.k_x)
+
+
+#: Where the linear controllers' k_x comes from (output_regulation.gain_source).
+GAIN_SOURCES = ('lqr', 'table_i')
+
+
+def linear_gains(p: RobotParams, source: str = 'lqr', Q=None, R=None):
+    """
+    Return the k_x(l) of the linear controllers: 'lqr' (GainSchedule of Q, R) or 'table_i'.
+
+    'table_i': Table I's k_x at every height, read as each wheel's torque (table_i_force_gain).
+    """
+    if source == 'lqr':
+        return GainSchedule(p, Q, R)
+    if source == 'table_i':
+        return FixedGain(table_i_force_gain(p))
+    raise ValueError('unknown gain source %r (one of %s)' % (source, ', '.join(GAIN_SOURCES)))
+
+
 class GainSchedule:
     """
     k_x(l) precomputed by ``lqr_gain`` over a grid of heights, linearly interpolated per tick.

@@ -44,10 +44,8 @@ from scipy.signal import cont2discrete, StateSpace
 from .balance_loop import core_config
 from .config import BalanceConfig
 from .controller_base import ControlInput
-from .lqr import table_i_force_gain
 from .model import linearize
 from .observer import DisturbanceObserver
-from .output_regulation import LqrController, OutputRegulationController
 from .params import CONTROL_PERIOD, IdaPbcGains, RobotParams
 from .pipeline import BalanceCore, CONTROLLER_NAMES
 
@@ -143,21 +141,6 @@ class Margins:
         return out
 
 
-class FixedGain:
-    """A stand-in for core/lqr.py's GainSchedule that returns one k_x at every height."""
-
-    def __init__(self, k_x):
-        self.k_x = tuple(float(v) for v in k_x)
-
-    def gain_floats(self, l: float) -> tuple:
-        """Return k_x (u = k_x @ xi) [N/rad, N s/rad, N/m, N s/m] whatever l [m]."""
-        return self.k_x
-
-    def gain(self, l: float) -> np.ndarray:
-        """Return k_x as an array."""
-        return np.array(self.k_x)
-
-
 def build_core(gains_set: str, cfg: BalanceConfig = BalanceConfig()) -> BalanceCore:
     """
     Return the BalanceCore (controllers and observer of the tick) for a gain set.
@@ -173,15 +156,9 @@ def build_core(gains_set: str, cfg: BalanceConfig = BalanceConfig()) -> BalanceC
         raise ValueError('unknown gain set %r (one of %s)' % (gains_set, ', '.join(GAIN_SETS)))
     p = cfg.model
     config = core_config(cfg)
-    if gains_set == 'table_i':
-        config = replace(config, ida_pbc=TABLE_I_IDA_PBC)
-    core = BalanceCore(p, config, cfg.loop.control_period)
-    if gains_set == 'table_i':
-        fixed = FixedGain(table_i_force_gain(p))
-        core.controllers['output_regulation'] = OutputRegulationController(
-            p, fixed, cfg.loop.control_period)
-        core.controllers['lqr'] = LqrController(p, fixed, cfg.loop.control_period)
-    return core
+    if gains_set == 'table_i':   # what config/paper_table_i.yaml sets (test_config.py)
+        config = replace(config, ida_pbc=TABLE_I_IDA_PBC, linear_gain_source='table_i')
+    return BalanceCore(p, config, cfg.loop.control_period)
 
 
 def controller_jacobian(controller, l: float, step: float = JACOBIAN_STEP) -> np.ndarray:

@@ -28,7 +28,7 @@ from .auto_mode import AutoRules, AutoSelector, HOLD, RISE
 from .controller_base import ControlInput
 from .estimation import WheelOdometry
 from .ida_pbc import IdaPbcController
-from .lqr import GainSchedule
+from .lqr import linear_gains
 from .observer import DisturbanceObserver
 from .output_regulation import LqrController, OutputRegulationController
 from .params import CONTROL_PERIOD, IdaPbcGains, RobotParams
@@ -86,6 +86,8 @@ class CoreConfig:
     max_wheel_torque: per-wheel torque limit [N m].
     switch_blend_time: time over which a controller switch blends out the jump in u [s].
     lqr_Q, lqr_R: LQR weights (None: core/lqr.py defaults).
+    linear_gain_source: the linear controllers' k_x(l): 'lqr' (from lqr_Q, lqr_R) or
+    'table_i' (Table I's k_x at every height; core/lqr.py linear_gains).
     """
 
     controller: str = 'ida_pbc'
@@ -101,6 +103,7 @@ class CoreConfig:
     switch_blend_time: float = 0.1
     lqr_Q: Optional[np.ndarray] = None
     lqr_R: Optional[np.ndarray] = None
+    linear_gain_source: str = 'lqr'
     auto: AutoRules = field(default_factory=AutoRules)
 
 
@@ -148,7 +151,8 @@ class BalanceCore:
             raise ValueError('unknown controller %r (one of %s)'
                              % (self.config.controller, ', '.join(MODES)))
         self.dt = dt
-        self.schedule = GainSchedule(p, self.config.lqr_Q, self.config.lqr_R)
+        self.schedule = linear_gains(p, self.config.linear_gain_source, self.config.lqr_Q,
+                                     self.config.lqr_R)
         self.controllers = {
             'ida_pbc': IdaPbcController(p, self.config.ida_pbc, self.config.compensate_offset),
             'output_regulation': OutputRegulationController(p, self.schedule),

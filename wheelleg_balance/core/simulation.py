@@ -309,23 +309,10 @@ def _build_core(sc: Scenario) -> BalanceCore:
     core.set_ida_pbc_gains(core.config.ida_pbc)
     core.select(sc.controller)
     if sc.linear_gain is not None:
+        from .lqr import FixedGain
         from .output_regulation import LqrController
-        core.controllers['lqr'] = LqrController(sc.params, _FixedGain(sc.linear_gain))
+        core.controllers['lqr'] = LqrController(sc.params, FixedGain(sc.linear_gain))
     return core
-
-
-class _FixedGain:
-    """A gain 'schedule' that returns the same k_x at every height (e.g. Table I's)."""
-
-    def __init__(self, k_x):
-        self.k_x = np.asarray(k_x, dtype=float).reshape(4)
-        self._k = tuple(float(v) for v in self.k_x)
-
-    def gain(self, l: float) -> np.ndarray:
-        return self.k_x.copy()
-
-    def gain_floats(self, l: float) -> tuple:
-        return self._k
 
 
 def simulate(sc: Scenario, core: Optional[BalanceCore] = None) -> SimResult:
