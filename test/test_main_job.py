@@ -294,10 +294,63 @@ def test_a_robot_that_never_rises_fails():
     assert 'rises' in {c['name'] for c in res['criteria'] if not c['ok']}
 
 
+def _velocity_step_run(tau=0.2, overshoot=0.05, pitch_deg=3.0):
+    """
+    Make a run whose true x_dot steps (second order) to 0.5 m/s at 10 s, back to 0 at 18 s.
+
+    Each step: a damped response with time constant ``tau`` [s] that passes the target by
+    ``overshoot`` of the step once; the pitch leans ``pitch_deg`` during each step's first 0.5 s.
+    """
+    zeta = -math.log(overshoot) / math.sqrt(math.pi ** 2 + math.log(overshoot) ** 2)
+    wn = 1.0 / (tau * zeta)
+
+    def response(dt):   # unit step response of the second-order system
+        if dt <= 0.0:
+            return 0.0
+        wd = wn * math.sqrt(1.0 - zeta ** 2)
+        return 1.0 - math.exp(-zeta * wn * dt) * (math.cos(wd * dt) + zeta / math.sqrt(
+            1.0 - zeta ** 2) * math.sin(wd * dt))
+
+    def truth(t):
+        x_dot = 0.5 * response(t - 10.0) - 0.5 * response(t - 18.0)
+        lean = pitch_deg if 10.0 <= t < 10.5 or 18.0 <= t < 18.5 else 0.0
+        return {'x_dot': x_dot, 'theta': math.radians(lean)}
+    return _run(26.0, truth), response
+
+
+def test_a_velocity_step_is_judged_by_its_rise_time_overshoot_and_pitch():
+    exp = scenarios.BY_NAME['velocity_step']
+    assert [s[:3] for s in params.joy_segments(exp)] == [(0.0, 10.0, 0.0), (10.0, 18.0, 0.5),
+                                                         (18.0, 25.0, 0.0)]
+    run, response = _velocity_step_run()
+    res = evaluate.evaluate(exp, run, [])
+    _from_the_table(res, table.BY_NAME['velocity_step'])
+    m = res['metrics']
+    # The 10-90 % time of the same response, found by bisection on the function itself.
+
+    def when(level):
+        lo, hi = 0.0, 2.0
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if response(mid) < level else (lo, mid)
+        return lo
+    assert m['velocity_rise_time_s'] == pytest.approx(when(0.9) - when(0.1), abs=0.01)
+    assert m['velocity_fall_time_s'] == pytest.approx(when(0.9) - when(0.1), abs=0.01)
+    assert m['velocity_overshoot_pct'] == pytest.approx(5.0, abs=0.3)
+    assert m['velocity_undershoot_pct'] == pytest.approx(5.0, abs=0.3)
+    assert m['velocity_step_pitch_peak_deg'] == pytest.approx(3.0, abs=1e-6)
+    assert res['passed'], res['criteria']
+    # Slow, overshooting, leaning: each criterion fails on its own.
+    for kwargs, failed in (({'tau': 1.0}, 'rise time'), ({'overshoot': 0.2}, 'overshoot'),
+                           ({'pitch_deg': 9.0}, 'pitch')):
+        res = evaluate.evaluate(exp, _velocity_step_run(**kwargs)[0], [])
+        assert {c['name'] for c in res['criteria'] if not c['ok']} == {failed}, kwargs
+
+
 def test_every_experiment_has_an_evaluator_and_stated_bounds():
     assert {e.kind for e in scenarios.SCENARIOS} <= set(evaluate.EVALUATORS)
     assert [e.figure for e in scenarios.SCENARIOS if e.name != 'startup_lqr'] == [
-        'Fig. %d' % n for n in (3, 3, 3, 4, 5, 6, 7, 8, 9, 10, 10)] + ['']
+        'Fig. %d' % n for n in (3, 3, 3, 4, 5, 6, 7, 8, 9, 10, 10)] + ['', '']
 
 
 # ------------------------------------------------------------------------------ the table

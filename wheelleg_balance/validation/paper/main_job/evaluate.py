@@ -517,10 +517,70 @@ def eval_sit_down(exp: Scenario, tr: Trace, m: dict, crit: List[dict], cmp: dict
     cmp['travel'] = '%s / %s' % (fmt(m['sit_down_travel_m']), fmt(m.get('cut_travel_m')))
 
 
+def _crossing(t: np.ndarray, v: np.ndarray, level: float, rising: bool) -> Optional[float]:
+    """Return the first time [s] v crosses ``level`` upwards (rising) or downwards, else None."""
+    hit = first_index(v >= level if rising else v <= level)
+    if hit is None:
+        return None
+    if hit == 0:
+        return float(t[0])
+    # Linear between the samples on both sides of the crossing (100 Hz ground truth).
+    v0, v1, t0, t1 = v[hit - 1], v[hit], t[hit - 1], t[hit]
+    return float(t0 + (level - v0) / (v1 - v0) * (t1 - t0))
+
+
+def step_response(t: np.ndarray, v: np.ndarray, start: float, target: float) \
+        -> Tuple[Optional[float], float]:
+    """
+    Return (10-90 % time [s], overshoot [%]) of v(t) going from ``start`` to ``target``.
+
+    The 10 % and 90 % levels lie on the way from start to target; overshoot: how far v goes
+    past the target, in % of the step, at least 0.
+    """
+    step = target - start
+    rising = step > 0.0
+    t10 = _crossing(t, v, start + 0.1 * step, rising)
+    t90 = _crossing(t, v, start + 0.9 * step, rising)
+    beyond = (np.max(v) - target) if rising else (target - np.min(v))
+    return (None if t10 is None or t90 is None else t90 - t10,
+            max(0.0, 100.0 * float(beyond) / abs(step)))
+
+
+def eval_velocity_step(exp: Scenario, tr: Trace, m: dict, crit: List[dict], cmp: dict) -> None:
+    """Judge the step up's rise time and overshoot and the pitch peak; report the step down."""
+    j = exp.judging
+    segs = joy_segments(exp)
+    t_up = next(s[0] for s in segs if s[2] > 0.0)
+    t_down = next(s[0] for s in segs if s[0] > t_up and s[2] == 0.0)
+    target = next(s[2] for s in segs if s[0] == t_up)
+    x_dot, theta = tr.g['x_dot'], tr.deg('theta')
+    before = mean_or_none(x_dot[tr.win(t_up - 0.5, t_up)])
+    at_down = mean_or_none(x_dot[tr.win(t_down - 0.5, t_down)])
+    theta_before = mean_or_none(theta[tr.win(t_up - 0.5, t_up)])
+    up, down = tr.win(t_up, t_down), tr.win(t_down, tr.tg[-1])
+    rise, overshoot_pct = step_response(tr.tg[up], x_dot[up], before, target)
+    fall, undershoot_pct = step_response(tr.tg[down], x_dot[down], at_down, 0.0)
+    pitch = max_deviation(theta[tr.win(t_up, tr.tg[-1])], theta_before)
+    m.update(step_times_s=[t_up, t_down], velocity_before_mps=before,
+             velocity_rise_time_s=rise, velocity_overshoot_pct=overshoot_pct,
+             velocity_step_pitch_peak_deg=pitch, velocity_at_step_down_mps=at_down,
+             velocity_fall_time_s=fall, velocity_undershoot_pct=undershoot_pct)
+    lim = j.limits()
+    crit.append(judge(j, 'rise time', '%s s (from %.3f m/s)' % (fmt(rise), before),
+                      rise is not None and rise <= lim['rise_s']))
+    crit.append(judge(j, 'overshoot', '%.1f %%' % overshoot_pct,
+                      overshoot_pct <= lim['overshoot_pct']))
+    crit.append(judge(j, 'pitch', '%.2f deg' % pitch, pitch <= lim['pitch_deg']))
+    cmp['rise'] = '%s / %s' % (fmt(rise), fmt(fall))
+    cmp['overshoot'] = '%.1f / %.1f' % (overshoot_pct, undershoot_pct)
+    cmp['pitch'] = '%.2f' % pitch
+
+
 EVALUATORS: Dict[str, Callable] = {
     'startup': eval_startup, 'standing': eval_standing, 'height': eval_height,
     'rotate': eval_rotate, 's_turn': eval_s_turn, 'bumps': eval_bumps, 'push': eval_push,
     'slope': eval_slope, 'slope_levelled': eval_slope_levelled, 'sit_down': eval_sit_down,
+    'velocity_step': eval_velocity_step,
 }
 
 

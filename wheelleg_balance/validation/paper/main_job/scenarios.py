@@ -186,6 +186,13 @@ _PLAYS: Dict[str, dict] = {
         # stand up), then ~/stop (the torque cut) for the comparison.
         'duration': 22.0, 'panels': ('theta', 'theta_dot', 'x', 'l'), 'balancing_until': 5.0,
         'actions': [(5.0, 'arm', False), (12.0, 'arm', True), (18.0, 'stop', None)]},
+    'velocity_step': {
+        # The start-up leaves IDA-PBC rolling for seconds: the step comes at 10 s, from rest or
+        # close to it (velocity_before_mps says how close), back to 0 at 18 s.
+        'duration': 26.0, 'panels': ('x_dot', 'theta', 'u', 'torques'),
+        'short_duration': 20.0,
+        'joy': [{'t': 0.0}, {'t': 10.0, 'v': table.VELOCITY_STEP_MPS}, {'t': 18.0, 'v': 0.0}],
+        'joy_end': 25.0},
 }
 
 
