@@ -356,6 +356,11 @@ class BalanceNode(Node):
         return None if self._runner_thread is None else self._runner_thread.native_id
 
     @property
+    def control_ticks(self) -> Optional[int]:
+        """Return the ticks the control loop has run in this process (None: in its own)."""
+        return None if self._runner is None else self._runner.ticks
+
+    @property
     def status(self) -> Optional[dict]:
         """Return the newest status the control loop sent (BalanceLoop.status + timing)."""
         return self._status

@@ -162,58 +162,57 @@ class FakeMotors:
 
 class ErrorFrameStorm:
     """
-    CAN error frames at ``rate`` [frames/s] into the node's receive queue (a VirtualBus).
+    CAN error frames at ``rate`` [frames/s] in the node's receive queue (a VirtualBus), while on.
 
-    Only the node's reader gets them, one shared Message object, no copy: on the robot the
-    motors' CAN controllers drop error frames in hardware, and the storm must load the system
-    under test, not the test. Sent with ``VirtualBus.send`` instead, every frame was deep-copied
-    for every receiver on the channel (14 us of the sender per frame on the idle VM, more under
-    load) and woke the fake motors' reader thread, all in the node's process and under its GIL:
-    on a loaded 2-core machine the node's torque frames fell from 469/s to 285/s. The node's
-    own share, a bounded poll that drops error frames, is about 1.4 us per frame.
-
-    The frames go in bursts every ``BURST`` s (20 at 4000/s): the thread wakes 200 times a
-    second, not 1000, each wake a GIL hand-over in the node's process. ``on`` gates it: cleared,
-    the thread sends nothing (windows with and without the storm on one rig).
+    The storm lives in the node's reads: while on, each read of the node's bus first returns
+    the error frames due by the clock since the storm came on (one shared Message, no copy),
+    then the real frames. So the node pays what a storm on socketcan costs it, each frame read
+    and dropped in its bounded poll (about 1.4 us), and the test pays nothing. Earlier versions
+    cost the test: sent with ``VirtualBus.send`` every frame was deep-copied for every receiver
+    and woke the fake motors' reader thread (14 us of the sender per frame; the node's torque
+    frames fell from 469/s to 285/s on a loaded machine); put into the queue by a thread of its
+    own, that thread's wake-ups took the GIL from the node's loop in the same process (the rig's
+    loop, bound by the GIL at about 300 ticks/s, kept 86 to 99 % of its rate). On the robot the
+    motors' CAN controllers drop error frames in hardware and socketcan delivers none to a socket
+    without ``CAN_RAW_ERR_FILTER``.
     """
 
-    #: Seconds between two bursts.
-    BURST = 0.005
-
     def __init__(self, receiver: VirtualBus, rate: float = 4000.0):
-        self.queue = receiver.queue
+        self._receiver = receiver
+        self._queue = receiver.queue   # the senders' channel keeps putting the real frames here
         self.rate = rate
+        #: Error frames the node has read.
         self.sent = 0
-        self.on = threading.Event()
-        self.on.set()
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name='error_storm', daemon=True)
-
-    def start(self) -> 'ErrorFrameStorm':
-        self._thread.start()
-        return self
-
-    def _run(self) -> None:
+        self._on_since: Optional[float] = None
+        self._given = 0
         # Error class "bus error" + "protocol violation" (linux/can/error.h), as socketcan
         # delivers them with the error filter open.
-        msg = can.Message(arbitration_id=0x088, is_error_frame=True, dlc=8,
-                          data=bytes(8), is_extended_id=False, is_rx=True)
-        batch = max(1, int(round(self.rate * self.BURST)))
-        put = self.queue.put_nowait
-        t_next = time.monotonic()
-        while not self._stop.is_set():
-            if not self.on.is_set():
-                self.on.wait(0.05)
-                t_next = time.monotonic()
-                continue
-            for _ in range(batch):
-                put(msg)
-            self.sent += batch
-            t_next += batch / self.rate
-            delay = t_next - time.monotonic()
-            if delay > 0.0:
-                time.sleep(delay)
+        self._msg = can.Message(arbitration_id=0x088, is_error_frame=True, dlc=8,
+                                data=bytes(8), is_extended_id=False, is_rx=True)
+
+    def start(self) -> 'ErrorFrameStorm':
+        """Stand between the node's bus and its queue (the storm off until ``set_on``)."""
+        self._receiver.queue = self
+        return self
+
+    def set_on(self, on: bool) -> None:
+        """Start (True) or end the storm; frames come due from the moment it starts."""
+        if on and self._on_since is None:
+            self._given = 0
+            self._on_since = time.monotonic()
+        elif not on:
+            self._on_since = None
+
+    def get(self, block: bool = True, timeout: Optional[float] = None):
+        """Read as the node does (queue.Queue.get): a due error frame, else a real one."""
+        since = self._on_since
+        if since is not None and int((time.monotonic() - since) * self.rate) > self._given:
+            self._given += 1
+            self.sent += 1
+            return self._msg
+        return self._queue.get(block, timeout)
 
     def stop(self) -> None:
-        self._stop.set()
-        self._thread.join(1.0)
+        """End the storm and give the node its own queue back."""
+        self._on_since = None
+        self._receiver.queue = self._queue

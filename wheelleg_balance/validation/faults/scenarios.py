@@ -348,56 +348,69 @@ def scenario_bus_off(context) -> Outcome:
                          '(ENETDOWN, bus-off)', bus_off)
 
 
-#: error_frame_storm: windows without (False) and with (True) the storm, ABBA so that a load
-#: of the machine that rises or falls during the run weighs on both alike [s each].
-STORM_WINDOWS = (False, True, True, False, False, True, True, False)
-STORM_WINDOW = 0.25
+#: error_frame_storm: windows without (False) and with (True) the storm, ABBA, so that a load
+#: of the machine that rises or falls during the run weighs on both alike, and short, since the
+#: rig's loop rate itself wanders (270 to 475 ticks/s in quarter-seconds without any storm).
+STORM_WINDOWS = (False, True, True, False) * 4
+STORM_WINDOW = 0.125
+#: The share of the storm's ticks that must send a torque frame to each motor (frames that the
+#: motors' reader thread records just past a window's end make up the rest).
+STORM_FRAMES_PER_TICK = 0.95
 
 
 def scenario_error_frame_storm(context) -> Outcome:
     """
     4000 CAN error frames/s into the node's receive queue, 1 s in all.
 
-    The torque frame rate with the storm is compared with the rate without it on the same rig,
-    in alternating quarter-seconds (STORM_WINDOWS), so the load of the machine cancels out: on
-    a CI machine that also ran another job the rate of the second before the storm (300/s) and
-    of the second of the storm (225/s) differed by what the other job did between them. The
-    storm is put straight into the node's queue (doubles.ErrorFrameStorm: what it cost when
-    sent through the virtual bus to every receiver was the test's own load, not the node's).
+    What "ignored" means, checked: the node keeps BALANCING, reads and counts the error frames
+    (``rx_frames``), and every tick of its loop during the storm still sends each motor its
+    torque frame (torque frames per tick of the loop's own count, in alternating windows with
+    and without the storm, ABBA). The torque frame rates with and without the storm are
+    figures, not a check: the rig's loop shares a GIL with the test's threads and its rate
+    wanders by itself (in A/A runs, no storm in either window set, the ratio of the two rates
+    went from 0.80 to 1.20), so a rate bound tested the rig, not the node. The storm is in the
+    node's reads (doubles.ErrorFrameStorm), costing the node what a socketcan storm would.
     """
     out = Outcome('error_frame_storm', '4000 error frames/s on the bus, 1 s in all',
-                  'error frames are ignored: keeps BALANCING, torque frame rate with the storm '
-                  '>= 80 % of the rate without it')
+                  'error frames are ignored: read and counted, keeps BALANCING, a torque frame '
+                  'to each motor at every tick of the storm (>= %.0f %% of the ticks)'
+                  % (100.0 * STORM_FRAMES_PER_TICK))
 
     def run(rig):
-        storm = ErrorFrameStorm(rig.node_bus)
-        storm.on.clear()
-        storm.start()
+        storm = ErrorFrameStorm(rig.node_bus).start()
         t0 = time.time()
         spans = {False: [], True: []}
         try:
             for on in STORM_WINDOWS:
-                storm.on.set() if on else storm.on.clear()
-                start = time.time()
+                storm.set_on(on)
+                start, ticks = time.time(), rig.node.control_ticks
                 time.sleep(STORM_WINDOW)
-                spans[on].append((start, time.time()))
+                spans[on].append((start, time.time(), rig.node.control_ticks - ticks))
         finally:
             storm.stop()
 
-        def rate(windows):
-            frames = min(sum(len(rig.motors.torques(m, a, b)) for a, b in windows)
-                         for m in MOTOR_IDS)
-            return frames / sum(b - a for a, b in windows)
-        without, during = rate(spans[False]), rate(spans[True])
-        out.figures['error_frames_sent'] = storm.sent
-        out.figures['torque_frames_per_s_without'] = round(without, 1)
-        out.figures['torque_frames_per_s_during'] = round(during, 1)
+        def frames(windows):
+            return min(sum(len(rig.motors.torques(m, a, b)) for a, b, _ in windows)
+                       for m in MOTOR_IDS)
+        seconds = {on: sum(b - a for a, b, _ in w) for on, w in spans.items()}
+        ticks = {on: sum(k for _, _, k in w) for on, w in spans.items()}
+        sent = {on: frames(w) for on, w in spans.items()}
+        per_tick = {on: sent[on] / max(1, ticks[on]) for on in spans}
+        out.figures['error_frames_read'] = storm.sent
+        out.figures['torque_frames_per_s_without'] = round(sent[False] / seconds[False], 1)
+        out.figures['torque_frames_per_s_during'] = round(sent[True] / seconds[True], 1)
+        out.figures['ticks_per_s_without'] = round(ticks[False] / seconds[False], 1)
+        out.figures['ticks_per_s_during'] = round(ticks[True] / seconds[True], 1)
+        out.figures['torque_frames_per_tick_without'] = round(per_tick[False], 3)
+        out.figures['torque_frames_per_tick_during'] = round(per_tick[True], 3)
         if not out.check('still BALANCING', _balancing_since(rig, t0)):
             out.figures['fault_reasons'] = rig.robot.safety().get('fault_reasons')
-        out.check('torque frames/s with the storm %.0f >= 80 %% of %.0f without'
-                  % (during, without), during >= 0.8 * without)
-        out.check('the node received the error frames',
-                  rig.node.status['can']['rx_frames'] >= 0.5 * storm.sent)
+        out.check('torque frames per tick during the storm %.3f >= %.2f'
+                  % (per_tick[True], STORM_FRAMES_PER_TICK),
+                  per_tick[True] >= STORM_FRAMES_PER_TICK)
+        out.check('the node read and counted the error frames (%d)' % storm.sent,
+                  storm.sent >= 0.5 * 4000.0 * seconds[True] and
+                  wait_for(lambda: rig.node.status['can']['rx_frames'] >= storm.sent, 2.0))
     return _on_armed_rig(context, out, run)
 
 
