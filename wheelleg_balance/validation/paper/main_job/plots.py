@@ -111,8 +111,9 @@ def plot(exp: Scenario, tr: Trace, path: pathlib.Path, result: dict) -> None:
         ax.axvline(tr.t_arm, color='grey', lw=0.6, ls='--')   # the arm: homing, raising
     axes[-1].set_xlabel('time since the start of balancing [s] (grey dashed: the arm)')
     axes[-1].set_xlim(tr.t_arm - 0.5, tr.duration)
-    fig.suptitle("%s (cf. the paper's %s): %s" % (
-        exp.name, exp.figure, 'passed' if result['passed'] else 'FAILED'), fontsize=10)
+    paper = " (cf. the paper's %s)" % exp.figure if exp.figure else ' (not in the paper)'
+    fig.suptitle('%s%s: %s' % (exp.name, paper, 'passed' if result['passed'] else 'FAILED'),
+                 fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=80)
     plt.close(fig)
