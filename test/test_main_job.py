@@ -571,8 +571,13 @@ def test_slope_levelled_judges_the_roll_on_the_ramp_and_the_drop():
     assert _bound(res, 'level on the ramp') == 'reaches the ramp'
 
 
-def _sit_run(contact_rate=0.3, first='tail', cut='body'):
-    """Balance; disarm at 5 s: lean to the tail, contact at 7 s; re-arm at 12 s; cut at 18 s."""
+def _sit_run(contact_rate=0.3, first='tail', cut='body', seen=5.0, early_mode=4.0):
+    """
+    Balance; disarm at 5 s: lean to the tail, contact at 7 s; re-arm at 12 s; cut at 18 s.
+
+    ~/state shows ``early_mode`` from ``seen`` to 5 s (the recording's clock a little ahead
+    of the actions').
+    """
     exp = scenarios.BY_NAME['sit_down']
     tail = math.radians(36.0)
 
@@ -596,7 +601,9 @@ def _sit_run(contact_rate=0.3, first='tail', cut='body'):
         if t < 0.0:
             return {'mode': 3.0}
         mode = 1.0
-        if 5.0 <= t < 7.5:
+        if seen <= t < 5.0:
+            mode = early_mode
+        elif 5.0 <= t < 7.5:
             mode = 4.0
         elif 7.5 <= t < 12.0:
             mode = 0.0
@@ -606,6 +613,16 @@ def _sit_run(contact_rate=0.3, first='tail', cut='body'):
             mode = 0.0
         return {'mode': mode}
     return exp, _run(exp.duration, truth, state)
+
+
+def test_a_sit_down_seen_just_before_the_disarm_is_no_fault_but_a_fault_is():
+    """A main_job run failed 'stays up' on SITTING at 4.9995 s for its disarm at 5.0 s."""
+    exp, tr = _sit_run(seen=4.97)
+    assert 'stays up' not in _failed(evaluate.evaluate(exp, tr, []))
+    exp, tr = _sit_run(seen=4.97, early_mode=2.0)   # FAULT there: a fault, disarm or not
+    assert 'stays up' in _failed(evaluate.evaluate(exp, tr, []))
+    exp, tr = _sit_run(seen=4.5)                    # SITTING long before: not the disarm's
+    assert 'stays up' in _failed(evaluate.evaluate(exp, tr, []))
 
 
 def test_sit_down_judges_the_contact_the_travel_and_shows_the_cut_beside_it():

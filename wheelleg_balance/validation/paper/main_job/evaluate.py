@@ -30,8 +30,11 @@ ROLL_ON_RAMP_DEG = 1.0
 #: |roll| within which the body is level again after the drop [deg].
 LEVEL_AGAIN_DEG = 2.0
 G = 9.81
-#: balance_node's ~/state mode at rest.
+#: balance_node's ~/state mode at rest, and while it sits down (core/safety.Mode).
 MODE_DISARMED = 0
+MODE_SITTING = 4
+#: How long before a scripted disarm its sit-down may already show in ~/state [s].
+DISARM_SLACK = 0.05
 
 
 def judge(judging: Judging, name: str, value, ok: bool, cause: str = '') -> dict:
@@ -72,7 +75,12 @@ def common(tr: Trace, m: dict, crit: List[dict], until: float = math.inf) -> flo
                       t_rise is not None and t_rise <= rises['t_s']))
     risen = (tr.tg >= (t_rise if t_rise is not None else math.inf)) & (tr.tg < until)
     late = (tr.ts >= 0.05) & (tr.ts < until)
-    t_fault = first_time(tr.ts[late], tr.s['mode'][late] != MODE_BALANCING)
+    mode = tr.s['mode'][late]
+    # The scripted disarm's sit-down may show in samples just before ``until``: the actions'
+    # clock starts when main_job sees balancing, the recording's at the first BALANCING sample
+    # (a run had SITTING at 4.9995 s for a disarm at 5.0 s). Only SITTING is excused there.
+    disarming = (tr.ts[late] >= until - DISARM_SLACK) & (mode == MODE_SITTING)
+    t_fault = first_time(tr.ts[late], (mode != MODE_BALANCING) & ~disarming)
     max_abs = max_deviation(theta[risen]) if risen.any() else None
     m['t_fault_s'] = t_fault
     m['max_abs_theta_after_rise_deg'] = max_abs
