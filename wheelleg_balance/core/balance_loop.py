@@ -503,11 +503,12 @@ class BalanceLoop:
         r.frames, r.leg_frames, r.arm_reply, r.events = [], [], None, []
         dt = self.period if self._last_now is None else now - self._last_now
         self._last_now = now
-        if self._steady_since is None or dt > self._stall_limit():
-            self._steady_since = now
         self._ticks += 1
         if inputs.params:
             self.apply_parameters(inputs.params)
+        stall_limit = self._stall_limit()   # the timeouts as this tick's parameters set them
+        if self._steady_since is None or dt > stall_limit:
+            self._steady_since = now
         self._take(inputs)
         s = self._read_samples(now)
         sup = self.supervisor
@@ -547,7 +548,7 @@ class BalanceLoop:
         if sensor_conflict:   # samples from two sources cannot be trusted
             sup.report_fault(now, INPUT_CONFLICT, sensor_conflict)
         if commanded:   # a gap before arming held no torque of ours
-            self._check_stall(now, dt)
+            self._check_stall(now, dt, stall_limit)
         self._check_lift(now, s, dt)
         mode = sup.mode
         if mode is Mode.FAULT and before in COMMANDING:
@@ -634,9 +635,8 @@ class BalanceLoop:
         lim = self.supervisor.limits
         return min(lim.imu_timeout, lim.joint_state_timeout)
 
-    def _check_stall(self, now: float, dt: float) -> None:
-        """Fault when the loop was late beyond the sensor timeouts (it was blind meanwhile)."""
-        limit = self._stall_limit()
+    def _check_stall(self, now: float, dt: float, limit: float) -> None:
+        """Fault when the loop was late beyond ``limit``, the sensor timeouts (it was blind)."""
         if dt > limit and self.supervisor.mode in COMMANDING:
             self.supervisor.report_fault(now, LOOP_STALL, 'control loop stalled %.1f ms (longer '
                                          'than the sensor timeouts, %.0f ms)'

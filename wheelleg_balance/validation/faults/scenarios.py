@@ -409,7 +409,7 @@ def scenario_error_frame_storm(context) -> Outcome:
                   % (per_tick[True], STORM_FRAMES_PER_TICK),
                   per_tick[True] >= STORM_FRAMES_PER_TICK)
         out.check('the node read and counted the error frames (%d)' % storm.sent,
-                  storm.sent >= 0.5 * 4000.0 * seconds[True] and
+                  storm.sent >= 0.5 * storm.rate * seconds[True] and
                   wait_for(lambda: rig.node.status['can']['rx_frames'] >= storm.sent, 2.0))
     return _on_armed_rig(context, out, run)
 
