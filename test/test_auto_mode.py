@@ -89,12 +89,12 @@ def test_from_the_tail_auto_rises_then_stands_still_where_ida_pbc_rolls_on():
     ida, _ = _start_up('ida_pbc')
     assert not auto.fell and not ida.fell
     assert np.max(np.abs(np.concatenate([auto.tau_left, auto.tau_right]))) <= 12.0 + 1e-9
-    # IDA-PBC alone is still moving at the end; auto comes to rest and stays.
-    assert _rest_time(ida) is None
+    # IDA-PBC alone still rolls over the last 2 s; auto comes to rest within 3 s and stays.
+    assert np.ptp(ida.x[ida.t >= ida.t[-1] - 2.0]) > 0.1
     rest = _rest_time(auto)
-    assert rest is not None and rest < 7.0
+    assert rest is not None and rest < 3.0
     last2 = auto.x[auto.t >= auto.t[-1] - 2.0]
-    assert np.ptp(last2) < 0.02   # holds its spot (it creeps back to the take-over reference)
+    assert np.ptp(last2) < 0.005   # holds its spot
     assert abs(auto.x[-1]) < abs(ida.x[-1])
     # One switch, to output regulation, after the rise; d_hat has found d.
     assert core.auto.switches == 1 and core.active_controller == HOLD

@@ -41,8 +41,9 @@ class AutoRules:
                                '[rad] ...', 0.002, 1.5)
     leave_rate: float = param(3.0, '... or |theta_dot| beyond this [rad/s]: IDA-PBC',
                               0.02, 50.0)
-    stop_deceleration: float = param(0.5, 'auto mode: a robot still moving when output '
-                                     'regulation takes over is braked to x_dot* at this rate '
+    stop_deceleration: float = param(0.5, 'a robot still moving when output regulation takes '
+                                     'over (the auto mode or a switch) is braked to x_dot* at '
+                                     'this rate '
                                      '[m/s^2] (its body leans about atan(a/g))', 0.01, 10.0)
 
     def problems(self) -> List[str]:

@@ -257,7 +257,8 @@ def core_config(cfg: BalanceConfig) -> CoreConfig:
                       switch_blend_time=c.switch_blend_time,
                       lqr_Q=np.diag(cfg.output_regulation.q_diag),
                       lqr_R=cfg.output_regulation.r,
-                      linear_gain_source=cfg.output_regulation.gain_source, auto=cfg.auto)
+                      linear_gain_source=cfg.output_regulation.gain_source, auto=cfg.auto,
+                      hold=cfg.output_regulation)
 
 
 def safety_limits(cfg: BalanceConfig) -> SafetyLimits:

@@ -18,6 +18,7 @@ from typing import List
 
 from .auto_mode import AutoRules
 from .lqr import DEFAULT_Q, DEFAULT_R, GAIN_SOURCES
+from .output_regulation import HoldShape
 from .params import IdaPbcGains, RobotParams
 from .pipeline import MODES
 from .protocols import PROTOCOLS
@@ -39,7 +40,7 @@ def _direction(default: int, description: str):
 class ControlConfig:
     """The controller and its shared tuning."""
 
-    controller: str = param('ida_pbc', 'balance controller: %s (auto: IDA-PBC to rise and at '
+    controller: str = param('auto', 'balance controller: %s (auto: IDA-PBC to rise and at '
                             'large angles, output regulation near upright; auto.*); '
                             'switchable live, bumpless, at the next control tick'
                             % ' | '.join(MODES), choices=MODES)
@@ -69,8 +70,8 @@ class ControlConfig:
 
 
 @dataclass(frozen=True)
-class OutputRegulationConfig:
-    """Output regulation (9)-(10): the LQR weights of the k_x schedule over l."""
+class OutputRegulationConfig(HoldShape):
+    """Output regulation (9)-(10): the hold's shape, the LQR weights of the k_x schedule."""
 
     q_diag: List[float] = param([float(q) for q in DEFAULT_Q.diagonal()],
                                 'LQR state weights diag(Q) for [theta, theta_dot, x, x_dot] '

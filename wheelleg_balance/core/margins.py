@@ -46,6 +46,7 @@ from .config import BalanceConfig
 from .controller_base import ControlInput
 from .model import linearize
 from .observer import DisturbanceObserver
+from .output_regulation import PAPER_HOLD
 from .params import CONTROL_PERIOD, IdaPbcGains, RobotParams
 from .pipeline import BalanceCore, CONTROLLER_NAMES
 
@@ -54,6 +55,7 @@ from .pipeline import BalanceCore, CONTROLLER_NAMES
 GAIN_SETS = ('default', 'table_i')
 #: Table I's IDA-PBC parameters (also IdaPbcGains' defaults and config/balance.yaml's).
 TABLE_I_IDA_PBC = IdaPbcGains(k=0.015, m22_0=0.04, k_v=0.05, P=0.2)
+
 #: Required margins: gain margin both ways [dB] and delay margin [s] (issue 12, item 3).
 REQUIRED_GAIN_MARGIN_DB = 6.0
 REQUIRED_DELAY_MARGIN_S = 0.010
@@ -157,7 +159,8 @@ def build_core(gains_set: str, cfg: BalanceConfig = BalanceConfig()) -> BalanceC
     p = cfg.model
     config = core_config(cfg)
     if gains_set == 'table_i':   # what config/paper_table_i.yaml sets (test_config.py)
-        config = replace(config, ida_pbc=TABLE_I_IDA_PBC, linear_gain_source='table_i')
+        config = replace(config, ida_pbc=TABLE_I_IDA_PBC, linear_gain_source='table_i',
+                         hold=PAPER_HOLD)
     return BalanceCore(p, config, cfg.loop.control_period)
 
 

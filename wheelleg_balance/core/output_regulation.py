@@ -26,8 +26,30 @@ its d_hat entry (1: the observer is unbiased).
 Velocity reference: both controllers feed back x - x_ref and x_dot - x_dot*, with x_ref moving at
 x_dot* (so standing still is x_dot* = 0). x_ref is latched on ``reset`` (take-over) and kept within
 ``max_position_error`` of x so a long push does not wind up a large restoring force.
+
+The hold (``HoldShape``, issue 12; docs/linear_control.md, "The hold"): output regulation as
+balance_node runs it by default differs from (9) as printed in three ways, each a parameter:
+- ``feedback: measured``: the pitch, pitch rate, position and speed come from the sensors
+  (u = k_x [theta~ - d_hat, theta_dot, x - x_ref, x_dot - x_dot*]); only d_hat comes from the
+  observer. Through the observer's xi_hat (``feedback: observer``, the paper's (9)) the loop
+  keeps 2.3 dB of gain margin downwards, on the sensors 6.4 dB (docs/margins.md).
+- a lean limit: the position and speed terms together ask for at most the force that holds the
+  body at a steady lean of ``max_lean_hold`` while x_dot* = 0 (a kicked robot rolls out and
+  brakes gently instead of leaning back hard to stop: the cart-pole (1) decelerates at
+  g tan(lean) only while leaning back by it), ``max_lean_move`` while the stick asks for motion;
+  the limit moves between the two at ``lean_limit_rate``, so the switch does not step u; while
+  the hold sees the robot roll on slower to stop than half of what the limit's lean brakes, its
+  limit grows at ``lean_limit_growth``, so a bias the
+  limit cannot overcome (d_hat off while rolling, from friction model (1) lacks) does not keep
+  it rolling;
+- while x_dot* != 0 the position is not held (x_ref follows x): the robot tracks the speed and
+  holds the spot where the command returns to zero, rather than making up the lag of the
+  acceleration with an overshoot in speed.
+Near the equilibrium none of the three limits is active, so the margins are those of the linear
+feedback.
 """
 from dataclasses import dataclass
+import math
 
 import numpy as np
 
@@ -36,11 +58,40 @@ from .lqr import GainSchedule
 from .model import disturbance_input, linearize
 from .observer import C_HAT, discretize, DisturbanceObserver
 from .params import CONTROL_PERIOD, RobotParams
+from .schema import param
 
 #: Regulated output (6): y = [theta_dot, x_dot] = C xi~.
 C_OUT = np.array([[0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
 #: Largest position error the position hold acts on [m] (x_ref follows beyond it).
 MAX_POSITION_ERROR = 0.3
+#: Above this speed error the robot counts as rolling (HoldShape.lean_limit_growth) [m/s].
+ROLLING_SPEED = 0.05
+#: Values of ``output_regulation.feedback``.
+FEEDBACKS = ('measured', 'observer')
+
+
+@dataclass(frozen=True)
+class HoldShape:
+    """How output regulation holds and moves the robot (module docstring, "The hold")."""
+
+    feedback: str = param('measured', 'output regulation feeds back: measured = the sensors '
+                          '(theta~ - d_hat, theta_dot, odometry x and x_dot; d_hat from the '
+                          "observer) | observer = the observer's xi_hat, (9) as printed",
+                          choices=FEEDBACKS)
+    max_lean_hold: float = param(math.radians(0.3), 'output regulation, x_dot* = 0: the '
+                                 'position and speed terms ask for at most the force of this '
+                                 'steady lean [rad] (braking at g tan(lean)); 0: no limit',
+                                 0.0, 0.5)
+    max_lean_move: float = param(math.radians(8.0), '... the same while x_dot* != 0 [rad]; '
+                                 '0: no limit', 0.0, 0.5)
+    lean_limit_rate: float = param(math.radians(20.0), 'how fast the lean limit moves from '
+                                   'one to the other [rad/s]', 1e-3, 100.0)
+    lean_limit_growth: float = param(math.radians(0.5), 'output regulation, x_dot* = 0: while '
+                                     'the robot rolls on (|x_dot| > 0.05 m/s) slower to stop '
+                                     'than half of braking at max_lean_hold, the hold limit '
+                                     'grows at this rate [rad/s] (up to max_lean_move), so a '
+                                     'bias (d_hat off while rolling: friction the model lacks) '
+                                     'cannot keep it rolling', 0.0, 10.0)
 
 
 def regulator_solution(l: float, p: RobotParams) -> tuple:
@@ -136,6 +187,10 @@ def check_regulator_solvable(k_x, k_d: float, l: float, p: RobotParams,
         d_hat_gain=float(X_c[8]))
 
 
+#: Output regulation as (9) prints it: the observer's xi_hat fed back, no lean limit.
+PAPER_HOLD = HoldShape(feedback='observer', max_lean_hold=0.0, max_lean_move=0.0)
+
+
 class _PositionReference:
     """x_ref moving at x_dot*, latched on take-over, kept within MAX_POSITION_ERROR of x."""
 
@@ -162,19 +217,26 @@ class OutputRegulationController:
 
     Uses the observer state s.xi_hat (it does not run the observer). With x_dot* = 0 the robot
     stands still where it was when this controller took over, whatever the IMU offset d.
+    ``shape`` (HoldShape): which states are fed back, the lean limit, the move rule.
     """
 
     name = 'output_regulation'
 
     def __init__(self, p: RobotParams, schedule: GainSchedule, dt: float = CONTROL_PERIOD,
-                 max_position_error: float = MAX_POSITION_ERROR):
+                 max_position_error: float = MAX_POSITION_ERROR,
+                 shape: HoldShape = HoldShape()):
         self.p = p
         self.schedule = schedule
+        self.shape = shape
         Pi, Gamma = regulator_solution(p.height_min, p)
         # Pi = e_1 and Gamma = 0 at every l (module docstring); the tests check it on a grid.
         self._pi = tuple(float(v) for v in Pi)
         self._gamma = Gamma
         self._ref = _PositionReference(dt, max_position_error)
+        self._weight = (p.body_mass + p.wheel_mass) * p.gravity   # (M + m) g [N]
+        self._lean = shape.max_lean_hold
+        # _roll_extra's state: speed when the rolling began [m/s], time since [s], extra [rad].
+        self._roll_v0 = self._roll_t = self._extra = 0.0
 
     def k_d(self, l: float) -> float:
         """Return the gain on d_hat at height l [m]: Gamma - k_x(l) Pi [N/rad]."""
@@ -182,17 +244,66 @@ class OutputRegulationController:
         return self._gamma - sum(ki * pi for ki, pi in zip(k, self._pi))
 
     def reset(self, s: ControlInput) -> None:
-        """Hold the position estimated at take-over."""
-        self._ref.x_ref = float(s.xi_hat[2])
+        """Hold the position at take-over (measured or estimated, as fed back)."""
+        measured = self.shape.feedback == 'measured'
+        self._ref.x_ref = float(s.x if measured else s.xi_hat[2])
+        self._lean = self._lean_target(s.x_dot_ref)
+        self._roll_v0 = self._roll_t = self._extra = 0.0
+
+    def _lean_target(self, x_dot_ref: float) -> float:
+        sh = self.shape
+        lean = sh.max_lean_move if x_dot_ref != 0.0 else sh.max_lean_hold
+        return lean if lean > 0.0 else math.inf
+
+    def _outer_limit(self, k0: float, x_dot_ref: float, speed_error: float) -> float:
+        """Return the largest |position + speed term| [N]: the force of the lean limit."""
+        target = self._lean_target(x_dot_ref)
+        if not math.isinf(target):
+            target = min(target + self._roll_extra(x_dot_ref, abs(speed_error), target),
+                         max(self.shape.max_lean_move, target))
+        if math.isinf(target) or math.isinf(self._lean):
+            self._lean = target
+        else:   # slew, so that a change of limit does not step u
+            step = self.shape.lean_limit_rate * self._ref.dt
+            self._lean += max(-step, min(step, target - self._lean))
+        if math.isinf(self._lean):
+            return math.inf
+        # Linearized, u = k0 theta + outer holds a steady lean theta = -outer / (k0 - (M+m) g).
+        return max(k0 - self._weight, 0.0) * math.tan(min(self._lean, 1.5))
+
+    def _roll_extra(self, x_dot_ref: float, speed: float, lean: float) -> float:
+        """
+        Return the extra lean [rad] the hold allows a robot that does not slow down.
+
+        Braking at a steady lean ``lean`` slows the robot at g tan(lean); one rolling on at less
+        than half that (a bias the limit cannot overcome) gets lean_limit_growth per second more.
+        """
+        if x_dot_ref != 0.0 or speed <= ROLLING_SPEED:
+            self._roll_v0 = self._roll_t = self._extra = 0.0
+            return 0.0
+        if speed > self._roll_v0:   # a new disturbance: judge the slowing from here
+            self._roll_v0, self._roll_t = speed, 0.0
+        if speed > self._roll_v0 - 0.5 * self.p.gravity * math.tan(lean) * self._roll_t:
+            self._extra += self.shape.lean_limit_growth * self._ref.dt
+        self._roll_t += self._ref.dt
+        return self._extra
 
     def compute(self, s: ControlInput) -> float:
         """Return the force u [N]."""
         k0, k1, k2, k3 = self.schedule.gain_floats(s.l)
         z0, z1, z2, z3, d_hat = s.xi_hat.tolist()
+        if self.shape.feedback == 'measured':
+            z0, z1, z2, z3 = s.theta, s.theta_dot, s.x, s.x_dot
         p0, p1, p2, p3 = self._pi
-        e_x = self._ref.error(z2 - p2 * d_hat, s.x_dot_ref)
-        return (k0 * (z0 - p0 * d_hat) + k1 * (z1 - p1 * d_hat) + k2 * e_x
-                + k3 * (z3 - p3 * d_hat - s.x_dot_ref) + self._gamma * d_hat)
+        x = z2 - p2 * d_hat
+        if s.x_dot_ref != 0.0:
+            self._ref.x_ref = x   # moving: track the speed, hold where the command ends
+        e_x = self._ref.error(x, s.x_dot_ref)
+        e_v = z3 - p3 * d_hat - s.x_dot_ref
+        outer = k2 * e_x + k3 * e_v
+        limit = self._outer_limit(k0, s.x_dot_ref, e_v)
+        outer = max(-limit, min(limit, outer))
+        return k0 * (z0 - p0 * d_hat) + k1 * (z1 - p1 * d_hat) + outer + self._gamma * d_hat
 
 
 class LqrController:

@@ -30,7 +30,7 @@ from .estimation import WheelOdometry
 from .ida_pbc import IdaPbcController
 from .lqr import linear_gains
 from .observer import DisturbanceObserver
-from .output_regulation import LqrController, OutputRegulationController
+from .output_regulation import HoldShape, LqrController, OutputRegulationController
 from .params import CONTROL_PERIOD, IdaPbcGains, RobotParams
 
 #: The controllers (``TickOutput.controller``, the index in ~/state).
@@ -88,6 +88,7 @@ class CoreConfig:
     lqr_Q, lqr_R: LQR weights (None: core/lqr.py defaults).
     linear_gain_source: the linear controllers' k_x(l): 'lqr' (from lqr_Q, lqr_R) or
     'table_i' (Table I's k_x at every height; core/lqr.py linear_gains).
+    hold: how output regulation holds and moves the robot (core/output_regulation.py).
     """
 
     controller: str = 'ida_pbc'
@@ -105,6 +106,7 @@ class CoreConfig:
     lqr_R: Optional[np.ndarray] = None
     linear_gain_source: str = 'lqr'
     auto: AutoRules = field(default_factory=AutoRules)
+    hold: HoldShape = field(default_factory=HoldShape)
 
 
 @dataclass(frozen=True)
@@ -155,13 +157,14 @@ class BalanceCore:
                                      self.config.lqr_R)
         self.controllers = {
             'ida_pbc': IdaPbcController(p, self.config.ida_pbc, self.config.compensate_offset),
-            'output_regulation': OutputRegulationController(p, self.schedule),
+            'output_regulation': OutputRegulationController(
+                p, self.schedule, shape=self.config.hold),
             'lqr': LqrController(p, self.schedule),
         }
         self.observer = DisturbanceObserver(p, dt)
         self.odometry = odometry if odometry is not None else WheelOdometry(p)
         self._auto: Optional[AutoSelector] = None
-        self._takeover_speed = 0.0   # [m/s], fading out after the auto mode's take-over
+        self._takeover_speed = 0.0   # [m/s], fading out after the hold's take-over
         self.yaw = YawLoop()
         self._active = self.config.controller
         if self._active == 'auto':
@@ -224,6 +227,7 @@ class BalanceCore:
         self._blend_offset = 0.0
         self._blend_step = 0.0
         self.yaw.reset()
+        self._takeover_speed = 0.0
         if self._requested is not None:
             self._active, self._requested = self._requested, None
         if self._auto is not None:
@@ -262,9 +266,12 @@ class BalanceCore:
             choice = self._auto.choose(meas.theta_meas - float(xi_hat[4]), meas.theta_dot, dt)
             if choice != self._active:
                 self._requested = choice
-                # Taking over a moving robot: the hold starts at its speed and brakes at
-                # auto.stop_deceleration, instead of pulling it back to where it took over.
-                self._takeover_speed = x_dot - ref.x_dot_ref if choice == HOLD else 0.0
+        if self._requested is not None:
+            # Taking over a moving robot (auto's rule or a parameter set): the hold starts at
+            # its speed and brakes at auto.stop_deceleration, instead of pulling it back to
+            # where it took over or braking at its small lean limit.
+            self._takeover_speed = x_dot - ref.x_dot_ref if self._requested == HOLD else 0.0
+        if self._takeover_speed:
             s.x_dot_ref = ref.x_dot_ref + self._takeover_speed
             v, step = self._takeover_speed, self.config.auto.stop_deceleration * dt
             self._takeover_speed = 0.0 if abs(v) <= step else v - math.copysign(step, v)

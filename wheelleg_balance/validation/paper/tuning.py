@@ -36,7 +36,7 @@ Metrics (``TARGETS`` holds the issue's targets, the one place they are stated):
   % of 0.5 m/s), ``pitch_peak_deg`` (max |theta| from the step on);
 - push: ``pitch_peak_deg`` (max |theta - theta_before| after a kick, theta_before the mean over
   the 0.5 s before it), ``recovery_s`` (from the kick until |theta - theta_before| stays within
-  ``RECOVERY_BAND_DEG`` 0.5 deg); the worse of the two kicks;
+  ``RECOVERY_BAND_DEG`` 1 deg, the issue's); the worse of the two kicks;
 - every run: ``fell``, ``peak_torque_nm``, ``saturated_s`` (time at the torque limit).
 
 Cost (``cost``), with r = min(metric / target, R_CAP) per metric and f(r) = max(0, r - 1)^2 +
@@ -116,7 +116,7 @@ REST_SPEED = 0.05
 #: Deceleration a run still moving at its end is extrapolated to stop with [m/s^2].
 EXTRAPOLATION_DECEL = 0.5
 #: Band of the push's recovery time [deg].
-RECOVERY_BAND_DEG = 0.5
+RECOVERY_BAND_DEG = 1.0
 
 #: The start-up grid: heights [m] and IMU offsets d [rad].
 HEIGHTS = (0.37, 0.55, 0.70)

@@ -119,6 +119,11 @@ STARTUP_PANELS = ('theta', 'theta_dot', 'x_dot', 'u')
 SLOPE_DRIVE = [{'t': 0.0}, {'t': 2.5, 'v': 1.0, 'turbo': True},
                {'t': 12.0, 'v': 0.0, 'turbo': False}]
 
+#: main_job's kicks: (t [s], duration [s], f_x, f_y [N]) on the body, the paper's 60 N for 0.1 s.
+KICKS = [(4.0, 0.1, 60.0, 0.0), (6.0, 0.1, -60.0, 0.0), (8.0, 0.1, 60.0, 0.0),
+         (10.0, 0.1, -60.0, 0.0)]
+PUSH_PANELS = ('theta', 'x_dot', 'u', 'torques')
+
 #: Per table entry: the Scenario fields besides ``entry``.
 _PLAYS: Dict[str, dict] = {
     'startup': {'duration': 6.0, 'panels': STARTUP_PANELS, 'short_duration': 4.0},
@@ -169,10 +174,9 @@ _PLAYS: Dict[str, dict] = {
         'sim': {'bumps': [3.0, 3.8], 'bump_height': 0.02},
         'joy': [{'t': 0.0}, {'t': 2.0, 'v': 1.0, 'turbo': True},
                 {'t': 10.0, 'v': 0.0, 'turbo': False}], 'joy_end': 11.0},
-    'push': {
-        'duration': 14.0, 'panels': ('theta', 'x_dot', 'u', 'torques'),
-        'pushes': [(4.0, 0.1, 60.0, 0.0), (6.0, 0.1, -60.0, 0.0), (8.0, 0.1, 60.0, 0.0),
-                   (10.0, 0.1, -60.0, 0.0)]},
+    'push': {'duration': 14.0, 'panels': PUSH_PANELS, 'pushes': KICKS,
+             'controller': DEFAULTS.control.controller},
+    'push_paper': {'duration': 14.0, 'panels': PUSH_PANELS, 'pushes': KICKS},
     'slope': {
         'duration': 14.0, 'panels': ('theta', 'roll', 'x_dot', 'torques'),
         'balance': dict(FIXED_LEGS, yaw_rate_gain=SIM_YAW_GAIN), 'sim': SLOPE,
@@ -187,9 +191,10 @@ _PLAYS: Dict[str, dict] = {
         'duration': 22.0, 'panels': ('theta', 'theta_dot', 'x', 'l'), 'balancing_until': 5.0,
         'actions': [(5.0, 'arm', False), (12.0, 'arm', True), (18.0, 'stop', None)]},
     'velocity_step': {
-        # The start-up leaves IDA-PBC rolling for seconds: the step comes at 10 s, from rest or
-        # close to it (velocity_before_mps says how close), back to 0 at 18 s.
-        'duration': 26.0, 'panels': ('x_dot', 'theta', 'u', 'torques'),
+        # The default configuration; the step comes at 10 s, from rest (velocity_before_mps
+        # says how close), back to 0 at 18 s.
+        'controller': DEFAULTS.control.controller, 'duration': 26.0,
+        'panels': ('x_dot', 'theta', 'u', 'torques'),
         'short_duration': 20.0,
         'joy': [{'t': 0.0}, {'t': 10.0, 'v': table.VELOCITY_STEP_MPS}, {'t': 18.0, 'v': 0.0}],
         'joy_end': 25.0},
