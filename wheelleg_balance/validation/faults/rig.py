@@ -73,6 +73,8 @@ SLACK = 0.06
 #: Start of the name of the reaction-time check (zero torque within the bound): the one check
 #: that depends on how fast the machine schedules the node, DDS and the rig.
 REACTION_TIME_CHECK = 'zero torque on the bus within'
+#: Name of the check that the sit-down began (~/state SITTING) within its bound.
+SITTING_TIME_CHECK = 'SITTING within'
 
 
 def wait_for(predicate: Callable[[], bool], timeout: float, step: float = 0.005) -> bool:

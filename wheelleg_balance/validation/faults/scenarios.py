@@ -30,7 +30,8 @@ from .doubles import bus_off, ErrorFrameStorm, FakeMotors, MOTOR_IDS, tx_queue_f
 from .matrices import JOINT_STATES, set_field
 from .outcome import _balancing_since, _torque_before, _torque_flowing, _zero_reaction, Outcome
 from .plants import StaticPlant
-from .rig import (FakeRobot, ImuWatch, PERIOD, REACTION_TIME_CHECK, Rig, RIG_PARAMS, SLACK,
+from .rig import (FakeRobot, ImuWatch, PERIOD, REACTION_TIME_CHECK, Rig, RIG_PARAMS,
+                  SITTING_TIME_CHECK, SLACK,
                   Spinning, unique_namespace, wait_for)
 from .. import child_env
 from ...core.config import DEFAULTS
@@ -305,7 +306,7 @@ def scenario_motor_over_temperature(context) -> Outcome:
         out.check('~/state reports SITTING', t_sit is not None)
         if t_sit is not None:
             out.figures['time_to_sitting_ms'] = round(1e3 * (t_sit - t0), 1)
-            out.check('SITTING within %.0f ms' % (1e3 * SLACK), t_sit - t0 <= SLACK)
+            out.check('%s %.0f ms' % (SITTING_TIME_CHECK, 1e3 * SLACK), t_sit - t0 <= SLACK)
         rig.robot.arm(False)   # a disarm ends the sit-down at once (the rig's robot is still)
         out.check('DISARMED after a disarm', rig.robot.wait_mode('DISARMED', 2.0) is not None)
         reply = rig.robot.arm()
