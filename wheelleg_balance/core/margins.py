@@ -55,7 +55,6 @@ from .pipeline import BalanceCore, CONTROLLER_NAMES
 GAIN_SETS = ('default', 'table_i')
 #: Table I's IDA-PBC parameters (also IdaPbcGains' defaults and config/balance.yaml's).
 TABLE_I_IDA_PBC = IdaPbcGains(k=0.015, m22_0=0.04, k_v=0.05, P=0.2)
-
 #: Required margins: gain margin both ways [dB] and delay margin [s] (issue 12, item 3).
 REQUIRED_GAIN_MARGIN_DB = 6.0
 REQUIRED_DELAY_MARGIN_S = 0.010

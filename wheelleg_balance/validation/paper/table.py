@@ -370,6 +370,8 @@ _PUSH_METRICS = (
 )
 #: |theta - theta_before| within this counts as recovered (kick_recovery_s) [deg].
 KICK_RECOVERY_BAND_DEG = 1.0
+#: kick_pitch_after_1p5s_deg looks at the pitch from this long after each kick [s].
+KICK_AFTER_S = 1.5
 _PUSH_COMPARE = (Compare('reversals', 'velocity reversals (zero crossings of x_dot)',
                          'one per kick'),
                  Compare('pitch', 'pitch change at a kick [deg]', 'sudden change, quick return'),
@@ -382,7 +384,8 @@ MAIN_JOB_PUSH_PAPER = Judging(
     metrics=_PUSH_METRICS,
     criteria=(
         Criterion('recovers from each kick', '|theta - theta_before| 1.5 s after a kick (until '
-                  'the next) below half its peak at the kick', {'after_s': 1.5, 'share': 0.5},
+                  'the next) below half its peak at the kick',
+                  {'after_s': KICK_AFTER_S, 'share': 0.5},
                   unmet=_LATE),
     ),
     compare=_PUSH_COMPARE)

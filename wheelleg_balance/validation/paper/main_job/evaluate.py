@@ -19,7 +19,7 @@ from .scenarios import Scenario
 from ..metrics import (drift, first_index, first_time, max_deviation, mean_or_none, overshoot,
                        peak_abs, settling_time, tracking_error, TrackingError, zero_crossings)
 from ..table import CONTACT_WINDOW_S, D_HAT0, DEG, IMU_OFFSET, Judging, \
-    KICK_RECOVERY_BAND_DEG, MAIN_JOB_COMMON, PAPER_YAW_GAIN
+    KICK_AFTER_S, KICK_RECOVERY_BAND_DEG, MAIN_JOB_COMMON, PAPER_YAW_GAIN
 
 #: balance_node's ~/state mode while balancing.
 MODE_BALANCING = 1
@@ -324,13 +324,14 @@ def eval_bumps(exp: Scenario, tr: Trace, m: dict, crit: List[dict], cmp: dict) -
 
 def _recovery(tr: Trace, t_kick: float, t_next: float, before: float,
               band_deg: float) -> Optional[float]:
-    """Time from the kick until |theta - before| stays within band_deg up to t_next [s]."""
+    """
+    Time from the kick until |theta - before| stays within band_deg up to t_next [s].
+
+    None: no window, or still outside the band when the next kick comes.
+    """
     idx = tr.win(t_kick, t_next)
-    dev = np.abs(tr.deg('theta')[idx] - before)
-    out = np.flatnonzero(dev > band_deg)
-    if dev.size == 0 or out.size and out[-1] == dev.size - 1:
-        return None   # no window, or still outside the band when the next kick comes
-    return 0.0 if out.size == 0 else float(tr.tg[idx][out[-1] + 1] - t_kick)
+    settled = settling_time(tr.tg[idx], tr.deg('theta')[idx] - before, band_deg, since=t_kick)
+    return None if settled is None else settled - t_kick
 
 
 def eval_push(exp: Scenario, tr: Trace, m: dict, crit: List[dict], cmp: dict) -> None:
@@ -356,11 +357,10 @@ def eval_push(exp: Scenario, tr: Trace, m: dict, crit: List[dict], cmp: dict) ->
     ends = kicks[1:] + [float(tr.tg[-1])]
     theta = tr.deg('theta')
     peaks, lefts, recoveries = [], [], []
-    after_s = 1.5
     for t, t_next in zip(kicks, ends):
         before = mean_or_none(theta[tr.win(t - 0.5, t)])
         peaks.append(max_deviation(theta[tr.win(t, t_next)], before))
-        lefts.append(_settled_after(tr, t + after_s, t_next, before))
+        lefts.append(_settled_after(tr, t + KICK_AFTER_S, t_next, before))
         recoveries.append(_recovery(tr, t, t_next, before, KICK_RECOVERY_BAND_DEG))
     x_dot = tr.g['x_dot'][tr.win(kicks[0], tr.tg[-1])]
     crossings = zero_crossings(x_dot)
