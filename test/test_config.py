@@ -128,7 +128,7 @@ def test_every_parameter_is_documented_and_has_a_valid_default(cls):
 def test_balance_config_names_and_defaults_of_the_interface():
     flat = to_flat(DEFAULTS)
     # docs/interface.md and Table I.
-    assert flat['controller'] == 'ida_pbc' and flat['body_mass'] == 11.0
+    assert flat['controller'] == 'auto' and flat['body_mass'] == 11.0
     assert flat['wheel_mass'] == 3.0 and flat['ida_pbc.k'] == 0.015
     assert flat['fall_angle'] == pytest.approx(math.radians(45.0))
     assert flat['can.interface'] == 'socketcan' and flat['can.channel'] == 'can0'

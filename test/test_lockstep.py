@@ -126,8 +126,10 @@ def test_an_emergency_stop_cuts_at_once_and_the_robot_falls_uncontrolled():
     assert ls.mode == int(Mode.DISARMED)
     after = [row for row in ls.log if row['t'] > t0 + 0.004]
     assert all(row['tau_left'] == 0.0 and row['tau_right'] == 0.0 for row in after)
-    # It fell: one way or the other, far from upright.
-    assert abs(ls.log[-1]['theta_true']) > math.radians(20.0)
+    # It fell, one way or the other: the limp legs fold and the body lands on its tail (at
+    # about 10 deg once folded) or swings far past upright the other way.
+    landed = any(row['tail_clearance'] <= 0.0 for row in after)
+    assert landed or abs(ls.log[-1]['theta_true']) > math.radians(20.0)
 
 
 def test_homing_at_the_hard_stops_after_power_up():

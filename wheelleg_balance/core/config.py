@@ -40,7 +40,7 @@ def _direction(default: int, description: str):
 class ControlConfig:
     """The controller and its shared tuning."""
 
-    controller: str = param('ida_pbc', 'balance controller: %s (auto: IDA-PBC to rise and at '
+    controller: str = param('auto', 'balance controller: %s (auto: IDA-PBC to rise and at '
                             'large angles, output regulation near upright; auto.*); '
                             'switchable live, bumpless, at the next control tick'
                             % ' | '.join(MODES), choices=MODES)

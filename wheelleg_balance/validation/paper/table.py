@@ -570,8 +570,8 @@ EXPERIMENTS: Tuple[Experiment, ...] = (
         'sharply at the bumps and the robot stays stable after them', 'bumps',
         main_job=MAIN_JOB_BUMPS),
     Experiment(
-        'push', 'Kicks on the body: 60 N for 0.1 s, alternating forward and backward, '
-        'controller: auto', 'Fig. 9', 'the paper (IDA-PBC: push_paper): each kick '
+        'push', 'Kicks on the body: 60 N for 0.1 s, alternating forward and backward, the '
+        'default configuration', 'Fig. 9', 'the paper (IDA-PBC: push_paper): each kick '
         'reverses the velocity; the pitch changes suddenly and returns quickly. The issue '
         '"control that beats the paper" asks at most 3 deg per kick, back within 1 deg in 1 s',
         'push', main_job=MAIN_JOB_PUSH),
@@ -597,7 +597,7 @@ EXPERIMENTS: Tuple[Experiment, ...] = (
         'cut drops the robot forward or backward', 'sit_down', main_job=MAIN_JOB_SIT_DOWN),
     Experiment(
         'velocity_step', 'Velocity step 0 -> 0.5 m/s -> 0 at l = 0.37 m through the joystick '
-        "and teleop_node's limits, controller: auto", '',
+        "and teleop_node's limits, the default configuration", '',
         'not in the paper (it reports velocity tracking only as the S-turn, Fig. 7): the '
         'issue "control that beats the paper" asks a 10-90 % rise within 1 s, overshoot <= 10 '
         '%, pitch within 8 deg', 'velocity_step', main_job=MAIN_JOB_VELOCITY_STEP,

@@ -174,7 +174,8 @@ _PLAYS: Dict[str, dict] = {
         'sim': {'bumps': [3.0, 3.8], 'bump_height': 0.02},
         'joy': [{'t': 0.0}, {'t': 2.0, 'v': 1.0, 'turbo': True},
                 {'t': 10.0, 'v': 0.0, 'turbo': False}], 'joy_end': 11.0},
-    'push': {'duration': 14.0, 'panels': PUSH_PANELS, 'pushes': KICKS, 'controller': 'auto'},
+    'push': {'duration': 14.0, 'panels': PUSH_PANELS, 'pushes': KICKS,
+             'controller': DEFAULTS.control.controller},
     'push_paper': {'duration': 14.0, 'panels': PUSH_PANELS, 'pushes': KICKS},
     'slope': {
         'duration': 14.0, 'panels': ('theta', 'roll', 'x_dot', 'torques'),
@@ -190,9 +191,9 @@ _PLAYS: Dict[str, dict] = {
         'duration': 22.0, 'panels': ('theta', 'theta_dot', 'x', 'l'), 'balancing_until': 5.0,
         'actions': [(5.0, 'arm', False), (12.0, 'arm', True), (18.0, 'stop', None)]},
     'velocity_step': {
-        # controller: auto (the default-to-be, issue 12); the step comes at 10 s, from rest
-        # (velocity_before_mps says how close), back to 0 at 18 s.
-        'controller': 'auto', 'duration': 26.0,
+        # The default configuration; the step comes at 10 s, from rest (velocity_before_mps
+        # says how close), back to 0 at 18 s.
+        'controller': DEFAULTS.control.controller, 'duration': 26.0,
         'panels': ('x_dot', 'theta', 'u', 'torques'),
         'short_duration': 20.0,
         'joy': [{'t': 0.0}, {'t': 10.0, 'v': table.VELOCITY_STEP_MPS}, {'t': 18.0, 'v': 0.0}],
