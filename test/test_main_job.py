@@ -274,6 +274,38 @@ def test_a_clean_start_up_passes_and_its_overshoot_is_measured():
         -math.degrees(min(_rise(0.01 * k) for k in range(400))), abs=0.05)
 
 
+def _rolling_start(t, v0=0.8, tau=0.6):
+    """Make a start-up that rolls out: x_dot = v0 exp(-t / tau) [m/s], x its integral."""
+    if t < 0.0:
+        return {'theta': math.radians(36.0)}
+    return {'theta': _rise(t), 'x_dot': v0 * math.exp(-t / tau),
+            'x': v0 * tau * (1.0 - math.exp(-t / tau))}
+
+
+def test_a_start_up_reports_when_and_where_it_came_to_rest():
+    res = evaluate.evaluate(scenarios.BY_NAME['startup'], _run(8.0, _rolling_start), [])
+    m = res['metrics']
+    # |x_dot| < 0.05 m/s from t = tau ln(v0 / 0.05) = 1.66 s; the axle has rolled v0 tau (1 -
+    # 0.05 / v0) = 0.45 m by then (the recording's 100 Hz: within a sample).
+    assert m['rest_time_s'] == pytest.approx(0.6 * math.log(0.8 / 0.05), abs=0.011)
+    assert m['rest_distance_m'] == pytest.approx(0.8 * 0.6 * (1.0 - 0.05 / 0.8), abs=0.01)
+    # Still rolling at the end: no rest time, and the comparison says so.
+    res = evaluate.evaluate(scenarios.BY_NAME['startup'],
+                            _run(8.0, lambda t: _rolling_start(t, tau=5.0)), [])
+    assert res['metrics']['rest_time_s'] is None and res['metrics']['rest_distance_m'] is None
+    assert {q: o for q, _, o in res['compare']}['at rest [s]'].startswith('still moving')
+
+
+def test_standing_fails_a_slow_creep_over_the_hold_that_the_last_5_s_miss():
+    duration = scenarios.BY_NAME['standing'].duration
+    # 0.6 mm/s: 3 mm over the last 5 s (within 5 mm), 12 mm over the 20 s hold (over 10).
+    res = evaluate.evaluate(scenarios.BY_NAME['standing'], _run(
+        duration, lambda t: {'theta': _rise(t), 'x': 6e-4 * t, 'x_dot': 6e-4}), [])
+    assert res['metrics']['drift_20s_m'] == pytest.approx(0.012, abs=3e-4)
+    failed = _failed(res)
+    assert 'holds its spot' in failed and 'no drift' not in failed
+
+
 def test_a_start_up_that_falls_back_on_the_tail_fails():
     def back(t):
         return _rise(t) if t < 1.5 else math.radians(36.0)
@@ -350,7 +382,7 @@ def test_a_velocity_step_is_judged_by_its_rise_time_overshoot_and_pitch():
 def test_every_experiment_has_an_evaluator_and_stated_bounds():
     assert {e.kind for e in scenarios.SCENARIOS} <= set(evaluate.EVALUATORS)
     assert [e.figure for e in scenarios.SCENARIOS if e.name != 'startup_lqr'] == [
-        'Fig. %d' % n for n in (3, 3, 3, 4, 5, 6, 7, 8, 9, 9, 10, 10)] + ['', '']
+        'Fig. %d' % n for n in (3, 3, 3, 3, 4, 5, 6, 7, 8, 9, 9, 10, 10)] + ['', '']
 
 
 # ------------------------------------------------------------------------------ the table
@@ -395,7 +427,8 @@ def test_a_start_up_is_judged_by_the_tables_bounds(monkeypatch):
 
 def test_a_clean_standing_run_passes_the_tables_criteria():
     entry = table.BY_NAME['standing']
-    res = evaluate.evaluate(scenarios.BY_NAME['standing'], _synthetic_run(_rise, 13.0), [])
+    res = evaluate.evaluate(scenarios.BY_NAME['standing'],
+                            _synthetic_run(_rise, scenarios.BY_NAME['standing'].duration), [])
     assert res['passed'], res['criteria']
     _from_the_table(res, entry)
     assert [c['name'] for c in res['criteria']] == [
@@ -458,7 +491,7 @@ def test_start_up_and_standing_through_the_real_processes(tmp_path):
 
     # From the simulator's ground truth, not from main_job's verdict; times are sim_node's
     # (lockstep: the run is slower than real time on a loaded machine, the physics the same).
-    for name, standing in (('startup', 4.0), ('standing', 13.0)):
+    for name, standing in (('startup', 4.0), ('standing', scenarios.BY_NAME['standing'].duration)):
         gt = _read(out / name / 'ground_truth.csv')
         state = _read(out / name / 'state.csv')
 

@@ -11,8 +11,9 @@ and the numbers the code compares with):
   teleop_node as separate processes; its figures go to ``report.json``.
 
 The table holds the union of what the two run: ``startup``, ``standing``, ``height`` and
-``rotate`` run in both; the start-up variants ``startup_tuned``, ``startup_lqr`` and
-``startup_lqr_soft``, and ``s_turn``, ``bumps``, ``push``, ``slope``, and the two beyond the
+``rotate`` run in both; the start-up variants ``startup_paper``, ``startup_tuned``,
+``startup_lqr`` and ``startup_lqr_soft``, and ``s_turn``, ``bumps``, ``push``, ``push_paper``,
+``slope``, ``velocity_step`` and the two beyond the
 paper, ``slope_levelled`` (the same ramp with the body kept level by the legs) and ``sit_down``
 (disarm while balancing, beside an uncontrolled torque cut), only through the real processes
 (model (1) has neither legs nor terrain nor pushes; its ``startup`` compares every controller
@@ -47,6 +48,16 @@ PAPER_FIGURES = {
     'heights_m': HEIGHTS,
 }
 RUNNERS = ('model1', 'main_job')
+#: The issue "control that beats the paper": the start-up of the default configuration, from
+#: the tail at 0.37 m (the one place these targets are stated; validation/paper/tuning.py).
+STARTUP_TARGETS = {'overshoot_deg': 1.0, 'rest_distance_m': 1.0, 'rest_time_s': 3.0}
+#: |x_dot| below this counts as at rest [m/s] (the same issue).
+REST_SPEED = 0.05
+#: The issue's standing targets: drift over the last 5 s and over the 20 s of standing [m],
+#: |d_hat - theta~| at rest [deg].
+STANDING_TARGETS = {'drift_last5_m': 0.005, 'drift_20s_m': 0.01, 'd_hat_error_deg': 0.1}
+#: How long the standing run holds the robot with output regulation [s].
+STANDING_HOLD_S = 20.0
 
 
 @dataclass(frozen=True)
@@ -210,18 +221,28 @@ MAIN_JOB_COMMON = Judging(
     ))
 
 
-def _main_job_startup(paper_overshoot: str) -> Judging:
+def _main_job_startup(paper_overshoot: str, targets: bool = False) -> Judging:
+    """Return the start-up's judging; ``targets``: the issue's rest and overshoot targets too."""
+    issue = ' (issue 12: <= %g)'
     return Judging(
         metrics=(
             Metric('theta_final_deg', 'mean true pitch over the last 1 s [deg]'),
             Metric('overshoot_deg', 'largest true pitch past theta_final_deg below it [deg]'),
             Metric('settle_s', 'last time |theta - theta_final| > band_deg (0: never) [s]'),
+            Metric('rest_time_s', 'from arming until the true |x_dot| stays below %g m/s '
+                   '(None: not by the end) [s]' % REST_SPEED),
+            Metric('rest_distance_m', '|x at rest - x at arming|, true axle [m]'),
         ),
         criteria=(Criterion('settles', 'within 2 deg of its final pitch in 3 s',
                             {'band_deg': 2.0, 'settle_s': 3.0}),),
-        compare=(Compare('overshoot', 'overshoot [deg]', paper_overshoot),
+        compare=(Compare('overshoot', 'overshoot [deg]', paper_overshoot + (
+                     issue % STARTUP_TARGETS['overshoot_deg'] if targets else '')),
                  Compare('theta_start', 'initial pitch [deg]', 'about 36'),
                  Compare('settle', 'settling within 2 deg [s]', '-'),
+                 Compare('rest_time', 'at rest [s]', issue[2:-1] % STARTUP_TARGETS[
+                     'rest_time_s'] if targets else '"stops slower with IDA-PBC"'),
+                 Compare('rest_distance', 'distance to rest [m]', issue[2:-1] % STARTUP_TARGETS[
+                     'rest_distance_m'] if targets else '-'),
                  Compare('peak_torque', 'peak wheel torque [N m]', '-')))
 
 
@@ -233,14 +254,21 @@ MAIN_JOB_STANDING = Judging(
         Metric('d_deg', "sim_node's IMU offset d [deg]"),
         Metric('d_hat0_deg', "the observer's initial d_hat [deg]"),
         Metric('drift_last5_m', '|x(end) - x(end - 5 s)| [m]'),
+        Metric('drift_20s_m', '|x(end) - x(end - %g s)|: over the hold [m]' % STANDING_HOLD_S),
         Metric('span_last5_m', 'max x - min x over the last 5 s [m]'),
         Metric('x_dot_mean_last5', 'mean x_dot over the last 5 s [m/s]'),
         Metric('d_hat_within_0p1_deg_from_s', 'last time |d_hat - d_hat_deg| > 0.1 deg [s]'),
     ),
     criteria=(
-        Criterion('d_hat found', '|d_hat - theta~| < 0.2 deg at rest (last 5 s)',
-                  {'err_deg': 0.2}),
-        Criterion('no drift', '|x(end) - x(end - 5 s)| < 2 cm', {'drift_m': 0.02}),
+        Criterion('d_hat found', '|d_hat - theta~| <= %g deg at rest (last 5 s)'
+                  % STANDING_TARGETS['d_hat_error_deg'],
+                  {'err_deg': STANDING_TARGETS['d_hat_error_deg']}),
+        Criterion('no drift', '|x(end) - x(end - 5 s)| <= %g mm'
+                  % (1e3 * STANDING_TARGETS['drift_last5_m']),
+                  {'drift_m': STANDING_TARGETS['drift_last5_m']}),
+        Criterion('holds its spot', '|x(end) - x(end - %g s)| <= %g mm'
+                  % (STANDING_HOLD_S, 1e3 * STANDING_TARGETS['drift_20s_m']),
+                  {'drift_20s_m': STANDING_TARGETS['drift_20s_m']}),
         Criterion('stands still', '|mean x_dot| < 1 cm/s over the last 5 s',
                   {'x_dot_mps': 0.01}),
     ),
@@ -522,10 +550,17 @@ MAIN_JOB_SIT_DOWN = Judging(
 
 EXPERIMENTS: Tuple[Experiment, ...] = (
     Experiment(
-        'startup', 'Start-up from the tail at l = 0.37 m, IDA-PBC (13)', 'Fig. 3',
+        'startup', 'Start-up from the tail at l = 0.37 m: the default configuration '
+        '(main_job); every controller (model (1))', 'Fig. 3',
         'starts at about 36 deg; overshoot 1 deg with IDA-PBC (12 deg with the linear '
-        'controller); the robot stops slower with IDA-PBC', 'startup',
-        model1=MODEL1_STARTUP, main_job=_main_job_startup('1 (IDA-PBC)'), model1_key='startup'),
+        'controller); the robot stops slower with IDA-PBC. The issue "control that beats the '
+        'paper" asks overshoot <= 1 deg, at rest within 3 s and 1 m', 'startup',
+        model1=MODEL1_STARTUP, main_job=_main_job_startup('1 (IDA-PBC)', targets=True),
+        model1_key='startup'),
+    Experiment(
+        'startup_paper', "Start-up from the tail at l = 0.37 m, IDA-PBC (13) with Table I's "
+        'gains', 'Fig. 3', 'starts at about 36 deg; overshoot 1 deg with IDA-PBC; the robot '
+        'stops slower with IDA-PBC', 'startup', main_job=_main_job_startup('1 (IDA-PBC)')),
     Experiment(
         'startup_tuned', 'Start-up from the tail, IDA-PBC (13) with the tuned gains of '
         'core/ida_pbc.py (m22_0 0.2, k_v 0.068, P 0)', 'Fig. 3',
@@ -555,7 +590,8 @@ EXPERIMENTS: Tuple[Experiment, ...] = (
         'backward; stable throughout; l in (13) follows the measured height', 'height',
         model1=MODEL1_HEIGHT, main_job=MAIN_JOB_HEIGHT, model1_key='height_change'),
     Experiment(
-        'rotate', 'Rotating clockwise at 165 deg/s at l = 0.70 m (joystick turbo), IDA-PBC',
+        'rotate', 'Rotating clockwise at 165 deg/s at l = 0.70 m (joystick turbo): IDA-PBC '
+        '(model (1)), the default configuration (main_job)',
         'Fig. 6', 'rotates clockwise at 165 deg/s smoothly; smooth wheel torques; the yaw does '
         'not disturb the balance', 'rotate', model1=MODEL1_ROTATE, main_job=MAIN_JOB_ROTATE,
         model1_key='rotating'),

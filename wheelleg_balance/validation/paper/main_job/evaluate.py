@@ -19,7 +19,8 @@ from .scenarios import Scenario
 from ..metrics import (drift, first_index, first_time, max_deviation, mean_or_none, overshoot,
                        peak_abs, settling_time, tracking_error, TrackingError, zero_crossings)
 from ..table import CONTACT_WINDOW_S, D_HAT0, DEG, IMU_OFFSET, Judging, \
-    KICK_AFTER_S, KICK_RECOVERY_BAND_DEG, MAIN_JOB_COMMON, PAPER_YAW_GAIN
+    KICK_AFTER_S, KICK_RECOVERY_BAND_DEG, MAIN_JOB_COMMON, PAPER_YAW_GAIN, REST_SPEED, \
+    STANDING_HOLD_S
 
 #: balance_node's ~/state mode while balancing.
 MODE_BALANCING = 1
@@ -99,8 +100,27 @@ def common(tr: Trace, m: dict, crit: List[dict], until: float = math.inf) -> flo
     return t_rise if t_rise is not None else 0.0
 
 
+def rest(tr: Trace) -> Tuple[Optional[float], Optional[float]]:
+    """
+    Return (rest_time_s, rest_distance_m) of a start-up, from the ground truth.
+
+    At rest: from when the true |x_dot| stays below REST_SPEED to the end of the run (None,
+    None if it is still faster at the end); the distance from the axle's x at arming.
+    """
+    after = tr.tg >= 0.0
+    t, v, x = tr.tg[after], tr.g['x_dot'][after], tr.g['x'][after]
+    if t.size == 0 or abs(v[-1]) >= REST_SPEED:
+        return None, None
+    t_rest = settling_time(t, v, REST_SPEED, since=0.0, edge='outside')
+    return t_rest, abs(float(np.interp(t_rest, t, x)) - float(x[0]))
+
+
 def eval_startup(exp: Scenario, tr: Trace, m: dict, crit: List[dict], cmp: dict) -> None:
-    """Overshoot [deg]: how far the pitch went past its final value; settling within 2 deg."""
+    """
+    Judge a start-up: overshoot, settling, and when and where it came to rest.
+
+    Overshoot [deg]: how far the pitch went past its final value; settling within 2 deg.
+    """
     lim = exp.judging.criterion('settles').limits
     theta = tr.deg('theta')
     t_end = tr.tg[-1]
@@ -110,6 +130,10 @@ def eval_startup(exp: Scenario, tr: Trace, m: dict, crit: List[dict], cmp: dict)
     m['overshoot_deg'] = overshoot(theta[after], final)
     settle = settling_time(tr.tg, theta - final, lim['band_deg'], since=0.0, edge='outside')
     m['settle_s'] = settle
+    m['rest_time_s'], m['rest_distance_m'] = rest(tr)
+    cmp['rest_time'] = fmt(m['rest_time_s'], '%.2f') if m['rest_time_s'] is not None else \
+        'still moving at %.2f s' % t_end
+    cmp['rest_distance'] = fmt(m['rest_distance_m'], '%.2f')
     crit.append(judge(exp.judging, 'settles', '%.2f s' % settle, settle <= lim['settle_s']))
     up = all(c['ok'] for c in crit if c['name'] in ('stays up', 'off the tail'))
     cmp['overshoot'] = '%.1f' % m['overshoot_deg'] if up else 'none: it fell (%s)' % next(
@@ -138,15 +162,19 @@ def eval_standing(exp: Scenario, tr: Trace, m: dict, crit: List[dict], cmp: dict
     x = tr.g['x'][last]
     m.update(d_hat_deg=d_hat, theta_meas_deg=theta_meas, theta_eq_deg=theta_eq,
              d_deg=IMU_OFFSET / DEG, d_hat0_deg=D_HAT0 / DEG,
-             drift_last5_m=drift(x), span_last5_m=float(np.ptp(x)),
+             drift_last5_m=drift(x),
+             drift_20s_m=drift(tr.g['x'][tr.win(t_end - STANDING_HOLD_S, t_end + 1.0)]),
+             span_last5_m=float(np.ptp(x)),
              x_dot_mean_last5=float(np.mean(tr.g['x_dot'][last])))
     m['d_hat_within_0p1_deg_from_s'] = settling_time(
         tr.ts, np.degrees(tr.s['d_hat']) - d_hat, 0.1, since=0.0, edge='outside')
     err = abs(d_hat - theta_meas)
     crit.append(judge(j, 'd_hat found', '%.3f deg' % err,
-                      err < j.criterion('d_hat found').limits['err_deg']))
+                      err <= j.criterion('d_hat found').limits['err_deg']))
     crit.append(judge(j, 'no drift', '%.1f mm' % (1e3 * m['drift_last5_m']),
-                      m['drift_last5_m'] < j.criterion('no drift').limits['drift_m']))
+                      m['drift_last5_m'] <= j.criterion('no drift').limits['drift_m']))
+    crit.append(judge(j, 'holds its spot', '%.1f mm' % (1e3 * m['drift_20s_m']),
+                      m['drift_20s_m'] <= j.criterion('holds its spot').limits['drift_20s_m']))
     still = j.criterion('stands still').limits['x_dot_mps']
     crit.append(judge(j, 'stands still', '%.1f mm/s' % (1e3 * m['x_dot_mean_last5']),
                       abs(m['x_dot_mean_last5']) < still))
