@@ -685,17 +685,24 @@ def test_a_kick_before_balancing_fails_the_push_run_instead_of_crashing(name):
     exp = scenarios.BY_NAME[name]
     judged = {c.name for c in exp.judging.criteria}
 
-    def kicked(t):   # 2.5 deg at each planned kick, gone with a 0.25 s time constant
-        return {'theta': sum(math.radians(2.5) * math.exp(-4.0 * (t - p[0]))
-                             for p in exp.pushes if t >= p[0])}
+    def kicked(t, shift=0.0):   # 2.5 deg at each kick, gone with a 0.25 s time constant
+        return {'theta': sum(math.radians(2.5) * math.exp(-4.0 * (t - p[0] + shift))
+                             for p in exp.pushes if t >= p[0] - shift)}
     assert evaluate.evaluate(exp, _run(exp.duration, kicked), [])['passed']
-    # Balancing started 4 s late in sim time: the first kick at 0 s; 6 s: before the arm.
-    for shift in (4.0, 6.0):
+    first = exp.pushes[0][0]
+    # Balancing started late in sim time: the first kick just inside the start-up's roll-out,
+    # at 0 s, or before the arm.
+    for shift in (first - table.KICK_EARLIEST_S + 0.1, first, first + 2.0):
         res = evaluate.evaluate(exp, _run(exp.duration, kicked, sim_shift=shift), [])
         assert _failed(res) == judged
         for c in judged:
             assert _bound(res, c) == table.BY_NAME[name].main_job.criterion(c).unmet['late']
-        assert res['metrics']['kick_times_s'][0] == pytest.approx(4.0 - shift, abs=0.011)
+        assert res['metrics']['kick_times_s'][0] == pytest.approx(first - shift, abs=0.011)
+    # Late, but not beyond the start-up's roll-out: judged.
+    shift = first - table.KICK_EARLIEST_S - 0.1
+    res = evaluate.evaluate(exp, _run(exp.duration, lambda t: kicked(t, shift),
+                                      sim_shift=shift), [])
+    assert res['passed'], _failed(res)
 
 
 def test_push_targets_fail_on_a_high_kick_or_a_slow_recovery():

@@ -306,7 +306,8 @@ def test_measured_feedback_uses_the_sensors_and_d_hat_only():
     sched = GainSchedule(P)
     l = 0.45
     k = sched.gain(l)
-    ctl = OutputRegulationController(P, sched, shape=HoldShape(max_lean_hold=0.0))
+    ctl = OutputRegulationController(P, sched, shape=HoldShape(max_lean_hold=0.0,
+                                                               max_lean_rest=0.0))
     ctl.reset(ControlInput(l=l))
     xi_hat = np.array([0.5, 0.5, 0.5, 0.5, 0.01])   # only d_hat of it may count
     s = ControlInput(theta=0.03, theta_dot=0.1, x=0.02, x_dot=0.04, l=l, xi_hat=xi_hat)
@@ -328,7 +329,7 @@ def test_the_lean_limit_caps_the_position_and_speed_terms():
     k0 = sched.gain(l)[0]
     weight = (P.body_mass + P.wheel_mass) * P.gravity
     ctl = OutputRegulationController(P, sched, shape=shape)
-    ctl.reset(ControlInput(l=l))
+    ctl.reset(ControlInput(l=l, x_dot=0.5))   # taken over rolling: the rolling limit at once
     cap = (k0 - weight) * math.tan(shape.max_lean_hold)
     u = _hold_force(ctl, l, 0.5)
     assert u == pytest.approx(cap, rel=1e-9)
@@ -340,6 +341,32 @@ def test_the_lean_limit_caps_the_position_and_speed_terms():
     free = OutputRegulationController(P, sched, shape=HoldShape(max_lean_hold=0.0))
     free.reset(ControlInput(l=l))
     assert _hold_force(free, l, 0.5) == pytest.approx(sched.gain(l)[3] * 0.5)
+
+
+def test_near_rest_the_position_hold_gets_the_rest_limit():
+    """Below 0.05 m/s at x_dot* = 0 the cap is max_lean_rest's, above it max_lean_hold's."""
+    sched = GainSchedule(P)
+    shape = HoldShape(lean_limit_growth=0.0)
+    assert shape.max_lean_rest > shape.max_lean_hold > 0.0
+    l = 0.45
+    gap = sched.gain(l)[0] - (P.body_mass + P.wheel_mass) * P.gravity
+    ctl = OutputRegulationController(P, sched, shape=shape)
+    ctl.reset(ControlInput(l=l))
+    # 0.2 m behind the held spot, creeping at 0.04 m/s: the position term saturates.
+    creep = ControlInput(l=l, x=-0.2, x_dot=0.04)
+    ticks = int(math.ceil((shape.max_lean_rest - shape.max_lean_hold)
+                          / (shape.lean_limit_rate * DT))) + 1
+    for _ in range(ticks):
+        u = ctl.compute(creep)
+    assert abs(u) == pytest.approx(gap * math.tan(shape.max_lean_rest), rel=1e-9)
+    # Kicked to 0.5 m/s: the limit closes to the rolling one at lean_limit_rate (no step).
+    u1 = _hold_force(ctl, l, 0.5)
+    assert abs(u1) == pytest.approx(
+        gap * math.tan(shape.max_lean_rest - shape.lean_limit_rate * DT), rel=1e-9)
+    u = _hold_force(ctl, l, 0.5, ticks=ticks)
+    assert abs(u) == pytest.approx(gap * math.tan(shape.max_lean_hold), rel=1e-9)
+    # The paper's (9) has no limit at all.
+    assert PAPER_HOLD.max_lean_hold == PAPER_HOLD.max_lean_rest == PAPER_HOLD.max_lean_move == 0
 
 
 def test_a_robot_that_rolls_on_gets_a_growing_limit_one_that_slows_does_not():
@@ -362,10 +389,10 @@ def test_a_robot_that_rolls_on_gets_a_growing_limit_one_that_slows_does_not():
     for k in range(1000):
         u = _hold_force(ctl, l, 0.4 - decel * k * DT)
     assert u == pytest.approx(base, rel=1e-9)
-    # Stopped (below 0.05 m/s): the extra is gone, the limit slews back to the hold's.
+    # Stopped (below 0.05 m/s): the extra is gone, the limit slews back to the rest limit's.
     _hold_force(ctl, l, 0.4, ticks=1000)
     u = _hold_force(ctl, l, 0.04, ticks=1000)
-    assert abs(u) <= base + 1e-9
+    assert abs(u) <= gap * math.tan(shape.max_lean_rest) + 1e-9
 
 
 def test_the_lean_limit_slews_to_the_move_limit_and_back():
@@ -376,11 +403,12 @@ def test_the_lean_limit_slews_to_the_move_limit_and_back():
     gap = (k0 - (P.body_mass + P.wheel_mass) * P.gravity)
     ctl = OutputRegulationController(P, sched, shape=shape)
     ctl.reset(ControlInput(l=l))
-    # The stick asks for motion while the robot lags by 0.5 m/s: the limit opens at the rate.
+    # The stick asks for motion while the robot lags by 0.5 m/s: the limit opens at the rate
+    # (from the rest limit: taken over at rest).
     u1 = _hold_force(ctl, l, 0.0, 0.5)
-    lean1 = shape.max_lean_hold + shape.lean_limit_rate * DT
+    lean1 = shape.max_lean_rest + shape.lean_limit_rate * DT
     assert -u1 == pytest.approx(gap * math.tan(lean1), rel=1e-9)
-    ticks = int(math.ceil((shape.max_lean_move - shape.max_lean_hold)
+    ticks = int(math.ceil((shape.max_lean_move - shape.max_lean_rest)
                           / (shape.lean_limit_rate * DT))) + 1
     u = _hold_force(ctl, l, 0.0, 0.5, ticks)
     assert -u == pytest.approx(min(gap * math.tan(shape.max_lean_move),
@@ -395,7 +423,7 @@ def test_moving_holds_no_position_and_the_stop_holds_where_the_command_ended():
     sched = GainSchedule(P)
     l = 0.45
     k = sched.gain(l)
-    shape = HoldShape(max_lean_hold=0.0, max_lean_move=0.0)
+    shape = HoldShape(max_lean_hold=0.0, max_lean_rest=0.0, max_lean_move=0.0)
     ctl = OutputRegulationController(P, sched, shape=shape)
     ctl.reset(ControlInput(l=l))
     # 2 m further on at the commanded speed: no pull back to where it started.

@@ -34,10 +34,12 @@ balance_node runs it by default differs from (9) as printed in three ways, each 
   observer. Through the observer's xi_hat (``feedback: observer``, the paper's (9)) the loop
   keeps 2.3 dB of gain margin downwards, on the sensors 6.4 dB (docs/margins.md).
 - a lean limit: the position and speed terms together ask for at most the force that holds the
-  body at a steady lean of ``max_lean_hold`` while x_dot* = 0 (a kicked robot rolls out and
-  brakes gently instead of leaning back hard to stop: the cart-pole (1) decelerates at
-  g tan(lean) only while leaning back by it), ``max_lean_move`` while the stick asks for motion;
-  the limit moves between the two at ``lean_limit_rate``, so the switch does not step u; while
+  body at a steady lean of ``max_lean_hold`` while x_dot* = 0 and the robot rolls (a kicked
+  robot rolls out and brakes gently instead of leaning back hard to stop: the cart-pole (1)
+  decelerates at g tan(lean) only while leaning back by it), ``max_lean_rest`` while x_dot* = 0
+  and it is near rest (|x_dot| <= ROLLING_SPEED: the position hold settles a creep without the
+  slow swing a small limit gives it), ``max_lean_move`` while the stick asks for motion; the
+  limit moves between them at ``lean_limit_rate``, so a change does not step u; while
   the hold sees the robot roll on slower to stop than half of what the limit's lean brakes, its
   limit grows at ``lean_limit_growth``, so a bias the
   limit cannot overcome (d_hat off while rolling, from friction model (1) lacks) does not keep
@@ -78,10 +80,12 @@ class HoldShape:
                           '(theta~ - d_hat, theta_dot, odometry x and x_dot; d_hat from the '
                           "observer) | observer = the observer's xi_hat, (9) as printed",
                           choices=FEEDBACKS)
-    max_lean_hold: float = param(math.radians(0.3), 'output regulation, x_dot* = 0: the '
-                                 'position and speed terms ask for at most the force of this '
-                                 'steady lean [rad] (braking at g tan(lean)); 0: no limit',
-                                 0.0, 0.5)
+    max_lean_hold: float = param(math.radians(0.15), 'output regulation, x_dot* = 0, rolling '
+                                 '(|x_dot| > 0.05 m/s): the position and speed terms ask for at '
+                                 'most the force of this steady lean [rad] (braking at '
+                                 'g tan(lean)); 0: no limit', 0.0, 0.5)
+    max_lean_rest: float = param(math.radians(0.3), '... the same near rest (|x_dot| <= 0.05 '
+                                 'm/s) [rad]; 0: no limit', 0.0, 0.5)
     max_lean_move: float = param(math.radians(8.0), '... the same while x_dot* != 0 [rad]; '
                                  '0: no limit', 0.0, 0.5)
     lean_limit_rate: float = param(math.radians(20.0), 'how fast the lean limit moves from '
@@ -188,7 +192,8 @@ def check_regulator_solvable(k_x, k_d: float, l: float, p: RobotParams,
 
 
 #: Output regulation as (9) prints it: the observer's xi_hat fed back, no lean limit.
-PAPER_HOLD = HoldShape(feedback='observer', max_lean_hold=0.0, max_lean_move=0.0)
+PAPER_HOLD = HoldShape(feedback='observer', max_lean_hold=0.0, max_lean_rest=0.0,
+                       max_lean_move=0.0)
 
 
 class _PositionReference:
@@ -247,17 +252,22 @@ class OutputRegulationController:
         """Hold the position at take-over (measured or estimated, as fed back)."""
         measured = self.shape.feedback == 'measured'
         self._ref.x_ref = float(s.x if measured else s.xi_hat[2])
-        self._lean = self._lean_target(s.x_dot_ref)
+        self._lean = self._lean_target(s.x_dot_ref, s.x_dot - s.x_dot_ref)
         self._roll_v0 = self._roll_t = self._extra = 0.0
 
-    def _lean_target(self, x_dot_ref: float) -> float:
+    def _lean_target(self, x_dot_ref: float, speed_error: float) -> float:
         sh = self.shape
-        lean = sh.max_lean_move if x_dot_ref != 0.0 else sh.max_lean_hold
+        if x_dot_ref != 0.0:
+            lean = sh.max_lean_move
+        elif abs(speed_error) > ROLLING_SPEED:
+            lean = sh.max_lean_hold
+        else:
+            lean = sh.max_lean_rest
         return lean if lean > 0.0 else math.inf
 
     def _outer_limit(self, k0: float, x_dot_ref: float, speed_error: float) -> float:
         """Return the largest |position + speed term| [N]: the force of the lean limit."""
-        target = self._lean_target(x_dot_ref)
+        target = self._lean_target(x_dot_ref, speed_error)
         if not math.isinf(target):
             target = min(target + self._roll_extra(x_dot_ref, abs(speed_error), target),
                          max(self.shape.max_lean_move, target))

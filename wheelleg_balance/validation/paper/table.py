@@ -406,7 +406,12 @@ _PUSH_COMPARE = (Compare('reversals', 'velocity reversals (zero crossings of x_d
                  Compare('recovery', 'back within 1 deg after a kick [s]', '-'),
                  Compare('theta_eq', 'equilibrium pitch (IMU) [deg]', 'about 1.2'),
                  Compare('x_dot', 'peak |x_dot| after the kicks [m/s]', '-'))
-_LATE = {'late': 'balancing 0.5 s before the first kick'}
+#: The first kick must come at least this long after the start of balancing [s]: earlier, it
+#: falls into the start-up's roll-out (at rest after about 2.4 s in MuJoCo, issue 12's target
+#: 3 s), and there is no settled pitch to judge it by. The kicks run on sim time, so an arm that
+#: came late (a loaded machine) brings them earlier; the run then fails as 'late'.
+KICK_EARLIEST_S = 3.0
+_LATE = {'late': 'balancing %g s before the first kick (the arm came late)' % KICK_EARLIEST_S}
 
 MAIN_JOB_PUSH_PAPER = Judging(
     metrics=_PUSH_METRICS,

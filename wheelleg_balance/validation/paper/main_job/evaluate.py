@@ -19,8 +19,8 @@ from .scenarios import Scenario
 from ..metrics import (drift, first_index, first_time, max_deviation, mean_or_none, overshoot,
                        peak_abs, settling_time, tracking_error, TrackingError, zero_crossings)
 from ..table import CONTACT_WINDOW_S, D_HAT0, DEG, IMU_OFFSET, Judging, \
-    KICK_AFTER_S, KICK_RECOVERY_BAND_DEG, MAIN_JOB_COMMON, PAPER_YAW_GAIN, REST_SPEED, \
-    STANDING_HOLD_S
+    KICK_AFTER_S, KICK_EARLIEST_S, KICK_RECOVERY_BAND_DEG, MAIN_JOB_COMMON, PAPER_YAW_GAIN, \
+    REST_SPEED, STANDING_HOLD_S
 
 #: balance_node's ~/state mode while balancing.
 MODE_BALANCING = 1
@@ -378,7 +378,7 @@ def eval_push(exp: Scenario, tr: Trace, m: dict, crit: List[dict], cmp: dict) ->
     # earlier than planned: each kick is mapped back through the recorded clock.
     kicks = [tr.sim_to_rel(sim_time(p[0])) for p in exp.pushes]
     m['kick_times_s'] = kicks
-    if kicks[0] < 0.5:   # no pre-kick window while balancing: nothing to judge it by
+    if kicks[0] < KICK_EARLIEST_S:   # in the start-up: no settled pitch to judge it by
         for name in names:
             crit.append(judge(j, name, 'first kick at %.2f s' % kicks[0], False, cause='late'))
         return
