@@ -9,7 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from wheelleg_balance.core.auto_mode import AutoRules, AutoSelector, HOLD, RISE
+from wheelleg_balance.core.auto_mode import (AutoRules, AutoSelector, brake_step, HOLD, RISE,
+                                             STOP_TAIL_MIN, STOP_TAIL_S)
 from wheelleg_balance.core.config import BalanceConfig
 from wheelleg_balance.core.params import RobotParams
 from wheelleg_balance.core.pipeline import BalanceCore, CoreConfig
@@ -111,3 +112,37 @@ def test_the_switch_is_bumpless():
     du = np.abs(np.diff(r.u))
     assert du[r.t[1:] > 1.0].max() < 1.0
     assert du.max() > 1.0   # the start-up itself: the check can tell a step
+
+
+def test_the_take_over_brake_fades_out_instead_of_stopping_at_full_deceleration():
+    """At stop_deceleration while fast, at |v| / STOP_TAIL_S in the tail, exactly 0 at the end."""
+    a = RULES.stop_deceleration
+    v, speeds = 1.0, []
+    while v != 0.0:
+        v = brake_step(v, a, DT)
+        speeds.append(v)
+        assert len(speeds) < 10000
+    steps = -np.diff([1.0] + speeds) / DT
+    fast = np.array([1.0] + speeds[:-1]) > a * STOP_TAIL_S
+    assert np.allclose(steps[fast], a)
+    tail = ~fast & (np.array([1.0] + speeds[:-1]) > STOP_TAIL_MIN * STOP_TAIL_S)
+    assert np.allclose(steps[tail], (np.array([1.0] + speeds[:-1]) / STOP_TAIL_S)[tail])
+    assert min(speeds) == 0.0 and speeds[-1] == 0.0
+    # The tail costs about STOP_TAIL_S (ln of the speeds) over a constant-rate stop.
+    assert len(speeds) * DT < 1.0 / a + STOP_TAIL_S * (1.0 + math.log(a / STOP_TAIL_MIN)) + DT
+    assert brake_step(-1.0, a, DT) == pytest.approx(-1.0 + a * DT)
+
+
+def test_a_robot_rolling_at_1_m_s_is_stopped_without_rolling_back():
+    """Model (1): upright at 1 m/s, auto: the hold takes over and brakes it to rest."""
+    r = simulate(Scenario(name='brake', controller='auto', theta0=0.0, x_dot0=1.0,
+                          duration=5.0))
+    assert not r.fell
+    moving = np.nonzero(np.abs(r.x_dot) > 0.05)[0]
+    at_rest = r.t[moving[-1]]
+    # Before the tail (constant 0.5 m/s^2, 2026-12-02's rules): at rest after 2.52 s, and it
+    # rolled back at 0.018 m/s as the body came upright after the braking.
+    assert at_rest < 2.3
+    assert r.x_dot.min() > -0.01
+    lean = math.atan(RULES.stop_deceleration / RobotParams().gravity)
+    assert np.abs(r.theta[r.t > 0.1]).max() < lean + math.radians(0.5)

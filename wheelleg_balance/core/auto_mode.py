@@ -17,6 +17,12 @@ The gap between enter and leave thresholds and the dwell keep it from chattering
 boundary; the switch itself is bumpless (BalanceCore blends the jump in u out over
 ``switch_blend_time``). The margins of each controller over the height range are in
 docs/margins.md.
+
+A robot still moving when the hold takes over (after the rise, or a parameter set) is braked
+to x_dot* (``brake_step``): at ``stop_deceleration``, and over the last STOP_TAIL_S * a of
+speed at |v| / STOP_TAIL_S, so the body comes back upright while the speed fades instead of
+still leaning back when the braking ends (that lean drove a robot braked at a constant rate
+back at 0.05 m/s for 2 s, MuJoCo 2026-12-03).
 """
 from dataclasses import dataclass
 import math
@@ -26,6 +32,21 @@ from .schema import param
 
 RISE = 'ida_pbc'
 HOLD = 'output_regulation'
+#: Time constant of the take-over brake's tail [s] (brake_step).
+STOP_TAIL_S = 0.3
+#: The tail's least deceleration [m/s^2]: the speed reaches x_dot* in finite time.
+STOP_TAIL_MIN = 0.05
+
+
+def brake_step(v: float, deceleration: float, dt: float) -> float:
+    """
+    Return the take-over speed offset [m/s] one tick of dt [s] later, from v [m/s].
+
+    It falls at min(deceleration, max(|v| / STOP_TAIL_S, STOP_TAIL_MIN)) [m/s^2] towards 0 and
+    stops there (module docstring).
+    """
+    step = min(deceleration, max(abs(v) / STOP_TAIL_S, STOP_TAIL_MIN)) * dt
+    return 0.0 if abs(v) <= step else v - math.copysign(step, v)
 
 
 @dataclass(frozen=True)
@@ -34,17 +55,17 @@ class AutoRules:
 
     enter_angle: float = param(math.radians(4.0), 'auto mode: |theta~ - d_hat| below this '
                                '[rad] ...', 0.001, 0.5)
-    enter_rate: float = param(0.5, '... and |theta_dot| below this [rad/s] ...', 0.01, 10.0)
-    dwell: float = param(0.3, '... for this long [s]: output regulation holds the robot',
+    enter_rate: float = param(1.0, '... and |theta_dot| below this [rad/s] ...', 0.01, 10.0)
+    dwell: float = param(0.1, '... for this long [s]: output regulation holds the robot',
                          0.0, 10.0)
     leave_angle: float = param(math.radians(12.0), 'auto mode: |theta~ - d_hat| beyond this '
                                '[rad] ...', 0.002, 1.5)
     leave_rate: float = param(3.0, '... or |theta_dot| beyond this [rad/s]: IDA-PBC',
                               0.02, 50.0)
-    stop_deceleration: float = param(0.5, 'a robot still moving when output regulation takes '
+    stop_deceleration: float = param(0.8, 'a robot still moving when output regulation takes '
                                      'over (the auto mode or a switch) is braked to x_dot* at '
-                                     'this rate '
-                                     '[m/s^2] (its body leans about atan(a/g))', 0.01, 10.0)
+                                     'this rate (its body leans about atan(a/g)), the last '
+                                     '0.3 s x a of speed more gently [m/s^2]', 0.01, 10.0)
 
     def problems(self) -> List[str]:
         """Check the hysteresis: each enter threshold below its leave threshold."""

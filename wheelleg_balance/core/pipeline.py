@@ -24,7 +24,7 @@ from typing import Optional
 import numpy as np
 
 from .actuation import wheel_torques, YawLoop
-from .auto_mode import AutoRules, AutoSelector, HOLD, RISE
+from .auto_mode import AutoRules, AutoSelector, brake_step, HOLD, RISE
 from .controller_base import ControlInput
 from .estimation import WheelOdometry
 from .ida_pbc import IdaPbcController
@@ -273,8 +273,8 @@ class BalanceCore:
             self._takeover_speed = x_dot - ref.x_dot_ref if self._requested == HOLD else 0.0
         if self._takeover_speed:
             s.x_dot_ref = ref.x_dot_ref + self._takeover_speed
-            v, step = self._takeover_speed, self.config.auto.stop_deceleration * dt
-            self._takeover_speed = 0.0 if abs(v) <= step else v - math.copysign(step, v)
+            self._takeover_speed = brake_step(self._takeover_speed,
+                                              self.config.auto.stop_deceleration, dt)
 
         if self._requested is not None:
             # Bumpless transfer: the new controller starts from the current estimate, and the
