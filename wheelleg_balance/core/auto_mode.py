@@ -65,7 +65,8 @@ class AutoRules:
     stop_deceleration: float = param(0.8, 'a robot still moving when output regulation takes '
                                      'over (the auto mode or a switch) is braked to x_dot* at '
                                      'this rate (its body leans about atan(a/g)), the last '
-                                     '0.3 s x a of speed more gently [m/s^2]', 0.01, 10.0)
+                                     '%g s x a of speed more gently [m/s^2]' % STOP_TAIL_S,
+                                     0.01, 10.0)
 
     def problems(self) -> List[str]:
         """Check the hysteresis: each enter threshold below its leave threshold."""

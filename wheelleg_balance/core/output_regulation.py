@@ -81,11 +81,11 @@ class HoldShape:
                           "observer) | observer = the observer's xi_hat, (9) as printed",
                           choices=FEEDBACKS)
     max_lean_hold: float = param(math.radians(0.15), 'output regulation, x_dot* = 0, rolling '
-                                 '(|x_dot| > 0.05 m/s): the position and speed terms ask for at '
+                                 '(|x_dot| > %g m/s): the position and speed terms ask for at '
                                  'most the force of this steady lean [rad] (braking at '
-                                 'g tan(lean)); 0: no limit', 0.0, 0.5)
-    max_lean_rest: float = param(math.radians(0.3), '... the same near rest (|x_dot| <= 0.05 '
-                                 'm/s) [rad]; 0: no limit', 0.0, 0.5)
+                                 'g tan(lean)); 0: no limit' % ROLLING_SPEED, 0.0, 0.5)
+    max_lean_rest: float = param(math.radians(0.3), '... the same near rest (|x_dot| <= %g '
+                                 'm/s) [rad]; 0: no limit' % ROLLING_SPEED, 0.0, 0.5)
     max_lean_move: float = param(math.radians(8.0), '... the same while x_dot* != 0 [rad]; '
                                  '0: no limit', 0.0, 0.5)
     lean_limit_rate: float = param(math.radians(20.0), 'how fast the lean limit moves from '

@@ -223,7 +223,8 @@ MAIN_JOB_COMMON = Judging(
 
 def _main_job_startup(paper_overshoot: str, targets: bool = False) -> Judging:
     """Return the start-up's judging; ``targets``: the issue's rest and overshoot targets too."""
-    issue = ' (issue 12: <= %g)'
+    def issue(key: str) -> str:
+        return 'issue 12: <= %g' % STARTUP_TARGETS[key]
     return Judging(
         metrics=(
             Metric('theta_final_deg', 'mean true pitch over the last 1 s [deg]'),
@@ -236,13 +237,13 @@ def _main_job_startup(paper_overshoot: str, targets: bool = False) -> Judging:
         criteria=(Criterion('settles', 'within 2 deg of its final pitch in 3 s',
                             {'band_deg': 2.0, 'settle_s': 3.0}),),
         compare=(Compare('overshoot', 'overshoot [deg]', paper_overshoot + (
-                     issue % STARTUP_TARGETS['overshoot_deg'] if targets else '')),
+                     ' (%s)' % issue('overshoot_deg') if targets else '')),
                  Compare('theta_start', 'initial pitch [deg]', 'about 36'),
                  Compare('settle', 'settling within 2 deg [s]', '-'),
-                 Compare('rest_time', 'at rest [s]', issue[2:-1] % STARTUP_TARGETS[
-                     'rest_time_s'] if targets else '"stops slower with IDA-PBC"'),
-                 Compare('rest_distance', 'distance to rest [m]', issue[2:-1] % STARTUP_TARGETS[
-                     'rest_distance_m'] if targets else '-'),
+                 Compare('rest_time', 'at rest [s]', issue('rest_time_s') if targets
+                         else '"stops slower with IDA-PBC"'),
+                 Compare('rest_distance', 'distance to rest [m]',
+                         issue('rest_distance_m') if targets else '-'),
                  Compare('peak_torque', 'peak wheel torque [N m]', '-')))
 
 

@@ -123,7 +123,7 @@ SLOPE_DRIVE = [{'t': 0.0}, {'t': 2.5, 'v': 1.0, 'turbo': True},
 #: They run on sim time (params.sim_time): an arm later than ARM_AT (nodes slow to come up on a
 #: loaded machine: 2.1 s late seen on 2026-12-03) brings them earlier after the start-up, so the
 #: first comes 6 s after the planned start of balancing, well after the start-up has come to
-#: rest (evaluate.KICK_EARLIEST_S guards the rest).
+#: rest (table.KICK_EARLIEST_S guards the rest).
 KICKS = [(6.0, 0.1, 60.0, 0.0), (8.0, 0.1, -60.0, 0.0), (10.0, 0.1, 60.0, 0.0),
          (12.0, 0.1, -60.0, 0.0)]
 PUSH_PANELS = ('theta', 'x_dot', 'u', 'torques')
