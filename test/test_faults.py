@@ -17,13 +17,14 @@ import warnings
 import pytest
 
 # conftest.py isolates ROS (domain from the pid, localhost) and provides ``context``.
+from wheelleg_balance.validation.contention import contended
 from wheelleg_balance.validation.faults.bench import (is_zero_torque, LoopBench, make_imu,
                                                       make_joints, MODE)
 from wheelleg_balance.validation.faults.lockstep import scenario_controller_switch
 from wheelleg_balance.validation.faults.matrices import FieldMatrix, MATRICES
 from wheelleg_balance.validation.faults.outcome import Outcome
 from wheelleg_balance.validation.faults.rig import REACTION_TIME_CHECK, SITTING_TIME_CHECK
-from wheelleg_balance.validation.faults.suite import SCENARIOS
+from wheelleg_balance.validation.faults.suite import run_measured
 
 pytestmark = pytest.mark.ros
 
@@ -44,11 +45,17 @@ def scenario_test(name):
     """
     Return a test that runs fault scenario ``name`` and asserts it was handled.
 
-    A run whose only failed check is a reaction-time bound (the timeout + rig.SLACK), with the
-    reaction there, only late (zero torque on the bus, or ~/state SITTING), is run once more: a
-    scheduling stall of the loaded 2-core test machine can exceed the slack once (seen: 160.8
-    ms against 160 ms; SITTING 61.4 ms against 60). A reaction that never came, every other
-    check, and a bound missed twice fail. Every retry is
+    A failed run is run once more only for lateness the run itself attributes:
+    - its only failed check is a reaction-time bound (the timeout + rig.SLACK), with the
+      reaction there, only late (zero torque on the bus, or ~/state SITTING): a scheduling stall
+      of the loaded 2-core test machine can exceed the slack once (seen: 160.8 ms against 160
+      ms; SITTING 61.4 ms against 60);
+    - or the machine kept tasks from the CPU for much of the run: CPU pressure at least
+      CONTENDED_PRESSURE_PCT or steal time at least CONTENDED_STEAL_PCT (the kernel's counters,
+      validation/contention.py). Seen in CI: every tick 10 to 20 ms late for a minute, one tick's
+      compute 75 ms (0.3 ms normally), the rig's 500 Hz IMU silent 104 ms, so a FAULT nothing
+      injected; a quiet run of this file stays below 41 % (docs/faults.md).
+    Every other failure, and any failure of the second run, fails. Every retry is
     recorded: a warning in the test report and the junit test-suite property
     ``<scenario>.retried`` (xunit2, as colcon writes it, has no per-test properties); the
     figures of every run likewise, ``<scenario>.figures``.
@@ -83,15 +90,73 @@ def test_only_a_reaction_that_came_late_is_run_once_more():
     assert not only_late(outcome([(zero, True)], 0.1))         # nothing failed
 
 
+#: CPU pressure [% of the run] from which a failed run is attributed to the machine: a quiet
+#: run of this file measured 0..25 % in-process, 28..41 % with the node as a subprocess.
+CONTENDED_PRESSURE_PCT = 60.0
+#: Steal time [% of the CPU time] from which a failed run is attributed to the hypervisor
+#: (quiet runs: 0..17 % per scenario, the hypervisor's other guests come and go).
+CONTENDED_STEAL_PCT = 20.0
+
+
+def attributable(out):
+    """Why a failed ``out`` may run once more ('' when it may not): see scenario_test."""
+    if out.handled:
+        return ''
+    if only_late(out):
+        return 'the reaction came late'
+    if contended(out.figures, CONTENDED_PRESSURE_PCT, CONTENDED_STEAL_PCT):
+        return 'the machine was contended (CPU pressure %s %%, steal %s %%)' % (
+            out.figures.get('cpu_pressure_pct'), out.figures.get('cpu_steal_pct'))
+    return ''
+
+
+def test_a_failure_on_a_contended_machine_is_run_once_more_a_quiet_one_is_not():
+    def failed(**figures):
+        out = Outcome('x', 'fault', 'expected')
+        out.check('still BALANCING', False)
+        out.figures.update(figures)
+        return out
+    assert attributable(failed(cpu_pressure_pct=85.0, cpu_steal_pct=0.0))
+    assert attributable(failed(cpu_pressure_pct=None, cpu_steal_pct=35.0))
+    assert not attributable(failed(cpu_pressure_pct=40.0, cpu_steal_pct=1.0))
+    assert not attributable(failed(cpu_pressure_pct=None, cpu_steal_pct=None))
+    passed = failed(cpu_pressure_pct=99.0)
+    passed.checks[:] = [('still BALANCING', True)]
+    assert not attributable(passed)
+
+
+def test_contention_figures_come_from_the_kernels_counters(tmp_path, monkeypatch):
+    from wheelleg_balance.validation import contention
+    pressure, stat = tmp_path / 'pressure', tmp_path / 'stat'
+    monkeypatch.setattr(contention, 'PRESSURE', str(pressure))
+    monkeypatch.setattr(contention, 'STAT', str(stat))
+    clock = iter([100.0, 102.0])
+    monkeypatch.setattr(contention.time, 'monotonic', lambda: next(clock))
+
+    def counters(stall_us, steal, other):
+        pressure.write_text('some avg10=1.00 avg60=0.50 avg300=0.10 total=%d\n'
+                            'full avg10=0.00 avg60=0.00 avg300=0.00 total=0\n' % stall_us)
+        # user nice system idle iowait irq softirq steal guest guest_nice
+        stat.write_text('cpu  %d 0 0 0 0 0 0 %d 7 7\ncpu0 1 0 0 0 0 0 0 0 0 0\n' % (other, steal))
+    counters(5_000_000, 100, 1000)
+    window = contention.CpuContention()
+    counters(6_500_000, 130, 1090)            # 1.5 s of 2 s stalled; 30 of 120 jiffies stolen
+    assert window.figures() == {'cpu_pressure_pct': 75.0, 'cpu_steal_pct': 25.0}
+    pressure.unlink()                          # a kernel without PSI
+    monkeypatch.setattr(contention.time, 'monotonic', lambda: 104.0)
+    assert window.figures()['cpu_pressure_pct'] is None
+
+
 def run_scenario(name, context, record):
-    """Run scenario ``name``, once more only if its reaction came late (see scenario_test)."""
-    out = SCENARIOS[name](context)
-    if not out.handled and only_late(out):
-        text = '%s: the reaction came late (%s; figures %s), run once more' % (
-            name, '; '.join(out.failures), out.figures)
+    """Run scenario ``name``, once more only for lateness it attributes (see scenario_test)."""
+    out = run_measured(name, context)
+    why = attributable(out)
+    if why:
+        text = '%s: %s (%s; figures %s), run once more' % (
+            name, why, '; '.join(out.failures), out.figures)
         record('%s.retried' % name, text)
         warnings.warn(text)
-        out = SCENARIOS[name](context)
+        out = run_measured(name, context)
     record('%s.figures' % name, out.figures)
     assert_handled(out)
 

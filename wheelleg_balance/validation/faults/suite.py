@@ -7,6 +7,7 @@ from rclpy.context import Context
 from . import lockstep as ls, scenarios as sc
 from .matrices import MATRICES, matrix_scenario, scenario_joy_fields
 from .outcome import Outcome
+from ..contention import CpuContention
 
 SCENARIOS: Dict[str, Callable[[Context], Outcome]] = {
     'imu_silent': sc.scenario_imu_silent,
@@ -59,6 +60,19 @@ SCENARIOS.update({name: matrix_scenario(name, kind, cases, params)
                   for name, (kind, cases, params) in MATRICES.items()})
 
 
+def run_measured(name: str, context: Context) -> Outcome:
+    """
+    Run scenario ``name``; its figures also get the machine's CPU contention over the run.
+
+    ``cpu_pressure_pct`` and ``cpu_steal_pct`` (validation/contention.py): what a late
+    reaction can be attributed to.
+    """
+    contention = CpuContention()
+    outcome = SCENARIOS[name](context)
+    outcome.figures.update(contention.figures())
+    return outcome
+
+
 def run_scenarios(names=None, context=None, progress=None) -> List[Outcome]:
     """
     Run the named scenarios (all when None) and return their outcomes.
@@ -74,7 +88,7 @@ def run_scenarios(names=None, context=None, progress=None) -> List[Outcome]:
     try:
         for name in names or list(SCENARIOS):
             try:
-                outcome = SCENARIOS[name](context)
+                outcome = run_measured(name, context)
             except Exception as exc:  # noqa: B902 -- a crashed scenario is a result too
                 outcome = Outcome(name, name, '(scenario crashed)')
                 outcome.check('scenario ran: %s: %s' % (type(exc).__name__, exc), False)
