@@ -122,11 +122,12 @@ def test_the_take_over_brake_fades_out_instead_of_stopping_at_full_deceleration(
         v = brake_step(v, a, DT)
         speeds.append(v)
         assert len(speeds) < 10000
-    steps = -np.diff([1.0] + speeds) / DT
-    fast = np.array([1.0] + speeds[:-1]) > a * STOP_TAIL_S
+    before = np.array([1.0] + speeds[:-1])      # the speed each step started from
+    steps = (before - np.array(speeds)) / DT
+    fast = before > a * STOP_TAIL_S
     assert np.allclose(steps[fast], a)
-    tail = ~fast & (np.array([1.0] + speeds[:-1]) > STOP_TAIL_MIN * STOP_TAIL_S)
-    assert np.allclose(steps[tail], (np.array([1.0] + speeds[:-1]) / STOP_TAIL_S)[tail])
+    tail = ~fast & (before > STOP_TAIL_MIN * STOP_TAIL_S)
+    assert np.allclose(steps[tail], (before / STOP_TAIL_S)[tail])
     assert min(speeds) == 0.0 and speeds[-1] == 0.0
     # The tail costs about STOP_TAIL_S (ln of the speeds) over a constant-rate stop.
     assert len(speeds) * DT < 1.0 / a + STOP_TAIL_S * (1.0 + math.log(a / STOP_TAIL_MIN)) + DT
