@@ -197,6 +197,7 @@ class Robot(Node):
         self.wheel_vel = (0.0, 0.0)
         self.leg_q = None  # (q_front, q_rear) of both legs, or None: no leg joints
         self._timer = None
+        self._publishing = True
         self._imu = Imu()
         self._joints = JointState(name=['left_wheel_joint', 'right_wheel_joint'],
                                   position=[0.0, 0.0], velocity=[0.0, 0.0])
@@ -211,6 +212,8 @@ class Robot(Node):
         self._timer = self.create_timer(0.005, self._publish)
 
     def _publish(self):
+        if not self._publishing:
+            return
         imu, joints = self._imu, self._joints
         if self.imu_on:
             half = 0.5 * self.theta
@@ -230,8 +233,13 @@ class Robot(Node):
         self._k += 1
 
     def stop(self):
-        if self._timer is not None:
-            self._timer.cancel()
+        """
+        Stop publishing; the timer itself goes with the node (destroy_node, after the spin).
+
+        Cancelling it while the executor spins raced the executor's take of a timer already
+        ready ("timer is canceled" in the spin thread, seen at teardown).
+        """
+        self._publishing = False
 
     def call(self, client, request, timeout=5.0):
         assert client.wait_for_service(timeout_sec=timeout)

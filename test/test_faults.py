@@ -12,6 +12,8 @@ and the latch test drive the control tick itself (core/balance_loop.py) on a vir
 Each test fails with the list of the scenario's checks that did not hold.
 """
 import math
+import threading
+import time
 import warnings
 
 import pytest
@@ -23,7 +25,8 @@ from wheelleg_balance.validation.faults.bench import (is_zero_torque, LoopBench,
 from wheelleg_balance.validation.faults.lockstep import scenario_controller_switch
 from wheelleg_balance.validation.faults.matrices import FieldMatrix, MATRICES
 from wheelleg_balance.validation.faults.outcome import Outcome
-from wheelleg_balance.validation.faults.rig import REACTION_TIME_CHECK, SITTING_TIME_CHECK
+from wheelleg_balance.validation.faults.rig import (REACTION_TIME_CHECK, SITTING_TIME_CHECK,
+                                                    Spinning, unique_namespace)
 from wheelleg_balance.validation.faults.suite import run_measured
 
 pytestmark = pytest.mark.ros
@@ -231,6 +234,53 @@ test_push_past_fall_angle_on_sim_node_ends_at_rest_without_torque = \
 
 test_bad_parameters_are_refused_and_nothing_changes = scenario_test('bad_parameters')
 test_safety_parameters_only_tighten_while_balancing = scenario_test('loosen_while_balancing')
+
+
+def _slow_node(context, seconds):
+    """Return (node, started, ended): a node whose timer callback sleeps ``seconds``."""
+    from rclpy.node import Node
+    node = Node('slow_callback', namespace=unique_namespace(), context=context)
+    started, ended = threading.Event(), threading.Event()
+
+    def slow():
+        if not started.is_set():
+            started.set()
+            time.sleep(seconds)
+            ended.set()
+    node.create_timer(0.01, slow)
+    return node, started, ended
+
+
+def test_the_rig_stops_spinning_only_after_a_running_callback_ends(context):
+    """
+    A callback longer than the old 2 s join: stop() waits for it, or says it could not.
+
+    The old stop() returned during it and the nodes were destroyed under it (rclpy's "timer
+    is canceled" in the spin thread).
+    """
+    errors = []
+    hook = threading.excepthook
+    threading.excepthook = errors.append
+    try:
+        node, started, ended = _slow_node(context, 2.5)
+        spinning = Spinning(context, (node,))
+        assert started.wait(5.0)
+        spinning.stop()
+        assert ended.is_set()          # stop() returned after the callback, not during it
+        node.destroy_node()
+        node, started, ended = _slow_node(context, 1.5)
+        spinning = Spinning(context, (node,))
+        assert started.wait(5.0)
+        with pytest.raises(RuntimeError, match='still in a callback'):
+            spinning.stop(timeout=0.2)
+        assert not ended.is_set()
+        spinning.stop()                # the second call waits for it to end
+        assert ended.is_set()
+        node.destroy_node()
+        time.sleep(0.1)
+    finally:
+        threading.excepthook = hook
+    assert not errors, [str(e.exc_value) for e in errors]
 
 
 def test_controller_switch_at_full_speed_is_bumpless(context):

@@ -73,7 +73,7 @@ def test_a_real_fall_is_penalised():
     """With almost no damping the start-up at 0.70 m does not survive: the cost says so."""
     runs = (tuning.Run('startup/fall', 'startup', Scenario(
         controller='auto', duration=3.0, height=0.70)),)
-    weak = tuning.Candidate(IdaPbcGains(k=0.015, m22_0=0.004, k_v=1e-6, P=0.0),
+    weak = tuning.Candidate(IdaPbcGains(k=0.015, m22_0=0.004, k_v=1e-6, P=0.0, k_v_upright=0.0),
                             tuning.START.rules)
     m = tuning.evaluate(weak, runs)
     assert m['startup/fall']['fell']

@@ -24,6 +24,12 @@ following Acosta, Ortega, Astolfi, Mahindrakar 2005 with the paper's
 IDA-PBC of H_d = 1/2 p_bar^T M_d^-1 p_bar + 3 g l / (k c^2) only for P = 0; with P > 0 no H_d of
 that form (any V_d(theta)) is non-increasing (docs/ida_pbc.md, section 5).
 
+k_v is a function of the state here (``damping_gain``): Table I's k_v, plus a bell
+k_v_upright exp(-(theta / k_v_width)^2 - (theta_dot / k_v_rate_width)^2) around upright rest.
+Any k_v(q, p) > 0 keeps dH_d/dt = -k_v e^2 <= 0, so the design and its proof are unchanged; the
+extra damping gives the loop its gain margin at upright (docs/ida_pbc.md, section 8;
+docs/margins.md). k_v_upright = 0 is the paper's law.
+
 Domain: M_d > 0 only for |theta| < pi/2. The functions clamp theta to +-THETA_MAX (89.4 deg) and
 return 0.0 for non-finite inputs or results, so they never return a non-finite value. The robot
 counts as fallen long before (45 deg), so the clamp only matters for garbage inputs.
@@ -41,8 +47,9 @@ from .params import IdaPbcGains, RobotParams
 THETA_MAX = 0.5 * math.pi - 0.01
 
 #: Gains tuned in docs/ida_pbc.md, section 7: start-up from 36 deg with <= 1 deg overshoot, at
-#: the price of a slow velocity loop (43 s and 23 m to stop at l = 0.37 m). P = 0: exact IDA-PBC.
-TUNED_GAINS = IdaPbcGains(k=0.015, m22_0=0.2, k_v=0.068, P=0.0)
+#: the price of a slow velocity loop (43 s and 23 m to stop at l = 0.37 m). P = 0: exact IDA-PBC;
+#: a constant k_v, as tuned.
+TUNED_GAINS = IdaPbcGains(k=0.015, m22_0=0.2, k_v=0.068, P=0.0, k_v_upright=0.0)
 
 
 @dataclass(frozen=True)
@@ -79,6 +86,18 @@ def shaping_function(theta: float, l: float, gains: IdaPbcGains) -> float:
     return 3.0 * l * math.asinh(t) + 6.0 * l * gains.m22_0 / gains.k * t
 
 
+def damping_gain(theta: float, theta_dot: float, gains: IdaPbcGains) -> float:
+    """
+    Damping injection k_v at theta [rad], theta_dot [rad/s] (module docstring).
+
+    k_v + k_v_upright exp(-(theta / k_v_width)^2 - (theta_dot / k_v_rate_width)^2): the bell
+    acts near upright rest only, so a body swinging through upright (the rise from the tail)
+    meets Table I's k_v (docs/ida_pbc.md, section 8).
+    """
+    z = (theta / gains.k_v_width) ** 2 + (theta_dot / gains.k_v_rate_width) ** 2
+    return gains.k_v + gains.k_v_upright * math.exp(-z)
+
+
 def _core(theta, p1, p2, l, k, m0, k_v, g):
     """
     Return (nu0, A_1, F) for clamped theta: nu0 = p^T A_2 p + 3 g tan(theta) - k_v A_4 p.
@@ -111,7 +130,8 @@ def ida_pbc_position(theta: float, theta_dot: float, x: float, x_dot: float, x_r
     """
     th = min(max(theta, -THETA_MAX), THETA_MAX)
     try:
-        nu0, a1, F = _core(th, theta_dot, x_dot, l, gains.k, gains.m22_0, gains.k_v, g)
+        nu0, a1, F = _core(th, theta_dot, x_dot, l, gains.k, gains.m22_0,
+                           damping_gain(th, theta_dot, gains), g)
         nu = nu0 + a1 * gains.P * (x - x_ref + F)
     except (ValueError, ZeroDivisionError, OverflowError):
         return 0.0
@@ -129,7 +149,8 @@ def ida_pbc_velocity(theta: float, theta_dot: float, x_dot_err: float, l: float,
     """
     th = min(max(theta, -THETA_MAX), THETA_MAX)
     try:
-        nu0, a1, F = _core(th, theta_dot, x_dot_err, l, gains.k, gains.m22_0, gains.k_v, g)
+        nu0, a1, F = _core(th, theta_dot, x_dot_err, l, gains.k, gains.m22_0,
+                           damping_gain(th, theta_dot, gains), g)
         nu = nu0 + a1 * gains.P * F
     except (ValueError, ZeroDivisionError, OverflowError):
         return 0.0

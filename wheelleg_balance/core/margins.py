@@ -47,14 +47,12 @@ from .controller_base import ControlInput
 from .model import linearize
 from .observer import DisturbanceObserver
 from .output_regulation import PAPER_HOLD
-from .params import CONTROL_PERIOD, IdaPbcGains, RobotParams
+from .params import CONTROL_PERIOD, RobotParams, TABLE_I_IDA_PBC
 from .pipeline import BalanceCore, CONTROLLER_NAMES
 
 #: Gain sets certified: the configuration's defaults (what balance_node runs unconfigured) and
 #: the paper's Table I.
 GAIN_SETS = ('default', 'table_i')
-#: Table I's IDA-PBC parameters (also IdaPbcGains' defaults and config/balance.yaml's).
-TABLE_I_IDA_PBC = IdaPbcGains(k=0.015, m22_0=0.04, k_v=0.05, P=0.2)
 #: Required margins: gain margin both ways [dB] and delay margin [s] (issue 12, item 3).
 REQUIRED_GAIN_MARGIN_DB = 6.0
 REQUIRED_DELAY_MARGIN_S = 0.010

@@ -45,13 +45,33 @@ class RobotParams:
 
 @dataclass(frozen=True)
 class IdaPbcGains:
-    """IDA-PBC free parameters (Table I): k > 0, m22_0 >= 0, k_v > 0, P >= 0."""
+    """
+    IDA-PBC free parameters: Table I's k, m22_0, k_v, P and the damping's bell near upright.
+
+    k > 0, m22_0 >= 0, k_v > 0, P >= 0 as in Table I; the damping injection is k_v +
+    k_v_upright exp(-(theta / k_v_width)^2 - (theta_dot / k_v_rate_width)^2) (core/ida_pbc.py
+    ``damping_gain``, docs/ida_pbc.md, section 8); k_v_upright = 0 is Table I's constant k_v
+    (``TABLE_I_IDA_PBC``).
+    """
 
     k: float = param(0.015, 'IDA-PBC k > 0 of M_d (Table I)', 1e-6, 10.0)
     m22_0: float = param(0.04, 'IDA-PBC m22^0 >= 0 of M_d (Table I)', 0.0, 10.0)
-    k_v: float = param(0.05, 'IDA-PBC damping injection k_v > 0 (Table I)', 1e-6, 10.0)
+    k_v: float = param(0.05, 'IDA-PBC damping injection k_v > 0 (Table I), away from upright',
+                       1e-6, 10.0)
     P: float = param(0.2, 'IDA-PBC gain P >= 0 (Table I: 0.2; 0 makes (13) an exact IDA-PBC, '
                      'docs/ida_pbc.md)', 0.0, 100.0)
+    k_v_upright: float = param(0.3, 'IDA-PBC damping injection added near upright rest: k_v + '
+                               'k_v_upright exp(-(theta / k_v_width)^2 - (theta_dot / '
+                               'k_v_rate_width)^2); 0: the constant k_v of Table I '
+                               '(docs/ida_pbc.md, section 8)', 0.0, 10.0)
+    k_v_width: float = param(0.05, 'IDA-PBC: width of that bell in theta [rad] (2.9 deg)',
+                             1e-3, 1.5)
+    k_v_rate_width: float = param(0.5, 'IDA-PBC: width of that bell in theta_dot [rad/s]',
+                                  1e-3, 50.0)
+
+
+#: Table I's IDA-PBC parameters (config/paper_table_i.yaml): a constant k_v.
+TABLE_I_IDA_PBC = IdaPbcGains(k=0.015, m22_0=0.04, k_v=0.05, P=0.2, k_v_upright=0.0)
 
 
 #: Table I output-regulation gain k_x exactly as printed (units: see core/lqr.py notes).

@@ -74,7 +74,7 @@ class CoreConfig:
 
     controller: initial controller, one of MODES ('auto': core/auto_mode.py chooses).
     auto: the auto mode's thresholds.
-    ida_pbc: IDA-PBC parameters (Table I by default).
+    ida_pbc: IDA-PBC parameters (the defaults: Table I's and damping near upright rest).
     compensate_offset: IDA-PBC uses theta~ - d_hat (removes the velocity bias an IMU offset
     causes; the paper leaves the offset in).
     d_hat0: initial estimate of the IMU pitch offset d [rad].

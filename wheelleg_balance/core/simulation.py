@@ -101,9 +101,9 @@ class Scenario:
     (None: none) [N m]; the plant clips silently, so the observer sees the unclipped force.
     delay_ticks: extra control periods between a command and its application.
     mass_factor: the plant's m and M are the nominal ones times this (controller: nominal).
-    ida_pbc_gains: IDA-PBC parameters (None: Table I). compensate_offset: IDA-PBC uses theta~ -
-    d_hat. linear_gain: if set, the 'lqr' controller uses this fixed k_x [N/rad, N s/rad, N/m,
-    N s/m] instead of the LQR schedule (e.g. Table I's k_x).
+    ida_pbc_gains: IDA-PBC parameters (None: the defaults, IdaPbcGains()). compensate_offset:
+    IDA-PBC uses theta~ - d_hat. linear_gain: if set, the 'lqr' controller uses this fixed k_x
+    [N/rad, N s/rad, N/m, N s/m] instead of the LQR schedule (e.g. Table I's k_x).
     """
 
     name: str = 'scenario'

@@ -271,6 +271,10 @@ class FakeRobot(Node):
 class Spinning:
     """Each node spun by an executor of its own on a daemon thread, until ``stop()``."""
 
+    #: How long ``stop`` waits for a callback still running to end [s] (a loaded machine has
+    #: kept one for over 2 s: the nodes were destroyed under it, "timer is canceled").
+    STOP_TIMEOUT_S = 30.0
+
     def __init__(self, context, nodes):
         self._running = True
         self._executors = []
@@ -287,11 +291,21 @@ class Spinning:
         while self._running:
             executor.spin_once(timeout_sec=0.05)
 
-    def stop(self) -> None:
-        """Let the threads finish their last spin, then shut the executors down."""
+    def stop(self, timeout: float = STOP_TIMEOUT_S) -> None:
+        """
+        Let the threads finish their last spin, then shut the executors down.
+
+        Returns only when every thread has ended, so the nodes can be destroyed after it;
+        raises RuntimeError if one is still in a callback after ``timeout`` [s].
+        """
         self._running = False
+        deadline = time.monotonic() + timeout
         for th in self._threads:
-            th.join(2.0)
+            th.join(max(0.0, deadline - time.monotonic()))
+        alive = sum(th.is_alive() for th in self._threads)
+        if alive:
+            raise RuntimeError('%d spin thread(s) still in a callback after %.0f s: the '
+                               'nodes must not be destroyed under them' % (alive, timeout))
         for ex in self._executors:
             ex.shutdown()
 

@@ -39,7 +39,7 @@ from .metrics import (drift, max_deviation, overshoot, peak_abs, SETTLING_BAND_D
 from .table import D_HAT0, DEG, IMU_OFFSET, ROTATE_RATE_DPS
 from .. import json_safe
 from ...core import ida_pbc, lqr
-from ...core.params import IdaPbcGains, RobotParams
+from ...core.params import RobotParams, TABLE_I_IDA_PBC
 from ...core.simulation import Scenario, SimResult, simulate, TAIL_ANGLE
 from ...optional import missing, pyplot
 
@@ -105,11 +105,11 @@ def controllers() -> dict:
     linear u = k_x xi~ with the LQR k_x(l); linear_table_i: the same law with Table I's k_x in
     force units; output_regulation: u = k_x xi_hat + k_d d_hat (9).
     """
-    out = {'ida_pbc_table_i': {'controller': 'ida_pbc', 'ida_pbc_gains': IdaPbcGains()}}
+    out = {'ida_pbc_table_i': {'controller': 'ida_pbc', 'ida_pbc_gains': TABLE_I_IDA_PBC}}
     tuned = getattr(ida_pbc, 'TUNED_GAINS', None)
     if tuned is not None:
         out['ida_pbc_tuned'] = {'controller': 'ida_pbc', 'ida_pbc_gains': tuned}
-    out['ida_pbc_uncompensated'] = {'controller': 'ida_pbc', 'ida_pbc_gains': IdaPbcGains(),
+    out['ida_pbc_uncompensated'] = {'controller': 'ida_pbc', 'ida_pbc_gains': TABLE_I_IDA_PBC,
                                     'compensate_offset': False}
     if tuned is not None:
         out['ida_pbc_tuned_uncompensated'] = {'controller': 'ida_pbc', 'ida_pbc_gains': tuned,

@@ -44,7 +44,7 @@ def run(heights: Sequence[float]) -> Results:
 
 
 def _same(a: List[Margins], b: List[Margins]) -> bool:
-    """Return True when two runs gave the same margins (e.g. default gains = Table I's)."""
+    """Return True when two runs gave the same margins (e.g. default gains equal to Table I's)."""
     def key(m):
         return (m.stable, m.gain_margin_up_db, m.gain_margin_down_db, m.delay_margin_s)
     return [key(m) for m in a] == [key(m) for m in b]
@@ -149,7 +149,7 @@ def markdown(results: Results, heights: Sequence[float]) -> str:
         for g in GAIN_SETS:
             ms = results[(c, g)]
             if any(_same(ms, results[(c, g0)]) for g0 in shown):
-                continue   # e.g. IDA-PBC's default gains are Table I's: one table
+                continue   # e.g. a default that is Table I's: one table
             shown.append(g)
             same = [g2 for g2 in GAIN_SETS if g2 != g and _same(ms, results[(c, g2)])]
             out += ['', '**%s gains**' % ' = '.join([g] + same)]

@@ -5,7 +5,7 @@ tuning: the start-up gains and the auto mode's thresholds by optimisation (issue
 scipy.optimize.differential_evolution (fixed seed, ``workers=1``, no polish), the IDA-PBC
 parameters of (13) and the thresholds of ``controller: auto`` (core/auto_mode.py) on a fixed set
 of closed-loop runs of model (1) (core/simulation.py: the node's own BalanceCore, 2 ms). It
-prints a before/after table (Table I's gains with the default thresholds, the start point, vs
+prints a before/after table (the default gains and thresholds, the start point, vs
 the best found) of every metric per scenario, with the targets, and writes a JSON report
 (default ``./tuning_report.json``). It changes no default: the numbers are for a person to
 decide on. Deterministic: the same arguments give the same report (CPU times aside). The
@@ -59,8 +59,10 @@ with k fixed at Table I's 0.015 -- (13) is invariant under (k, m22_0, k_v, P) ->
 lam m22_0, lam k_v, P / lam) (docs/ida_pbc.md, section 7), so a free k adds nothing but a flat
 direction; the auto thresholds enter_angle, leave_angle (deg) and stop_deceleration (log10),
 with the hysteresis enter_angle + HYSTERESIS_MIN_DEG <= leave_angle as a linear constraint.
-The start point (Table I, default thresholds) is put into the initial population, so the best
-found is never worse than the start on this cost.
+The damping's bell near upright (k_v_upright, k_v_width) stays at the defaults: it sets the
+loop's margins (docs/margins.md), not the rise. The start point (the defaults: Table I's
+k, m22_0, k_v, P with that bell, and the default thresholds) is put into the initial
+population, so the best found is never worse than the start on this cost.
 
 ``rise_estimate`` adds a model-based reference point: the fastest rise from the tail under the
 torque limit that lifts off at arming (full forward torque, then full braking, timed so the
@@ -69,6 +71,7 @@ than the overshoot target (the body decelerates at most g tan(overshoot)).
 """
 import argparse
 import copy
+from dataclasses import replace
 import json
 import math
 import os
@@ -170,17 +173,19 @@ class Candidate(NamedTuple):
         """Return the parameters by name (angles in rad, as the configuration has them)."""
         g, r = self.gains, self.rules
         return {'k': g.k, 'm22_0': g.m22_0, 'k_v': g.k_v, 'P': g.P,
+                'k_v_upright': g.k_v_upright, 'k_v_width': g.k_v_width,
                 'enter_angle': r.enter_angle, 'leave_angle': r.leave_angle,
                 'stop_deceleration': r.stop_deceleration}
 
 
-#: The start point: Table I's IDA-PBC gains and the default thresholds.
+#: The start point: the default IDA-PBC gains and thresholds.
 START = Candidate(IdaPbcGains(), AutoRules())
 
 
 def candidate_from(params: Dict[str, float]) -> Candidate:
     """Return the candidate of ``Candidate.as_dict``'s output (e.g. a report's params)."""
-    gains = IdaPbcGains(**{k: params[k] for k in ('k', 'm22_0', 'k_v', 'P')})
+    names = ('k', 'm22_0', 'k_v', 'P', 'k_v_upright', 'k_v_width')
+    gains = IdaPbcGains(**{k: params[k] for k in names if k in params})
     names = ('enter_angle', 'leave_angle', 'stop_deceleration')
     rules = AutoRules(**{k: params[k] for k in names})
     return Candidate(gains, rules)
@@ -205,9 +210,9 @@ def encode(c: Candidate) -> np.ndarray:
 
 
 def decode(z: Sequence[float]) -> Candidate:
-    """Return the candidate of a search vector (inverse of ``encode``, k = FIXED_K)."""
+    """Return the candidate of a search vector (inverse of ``encode``; k and the bell: START's)."""
     values = {v.name: (10.0 ** float(x) if v.log else float(x)) for v, x in zip(VARIABLES, z)}
-    gains = IdaPbcGains(k=FIXED_K, m22_0=values['m22_0'], k_v=values['k_v'], P=values['P'])
+    gains = replace(START.gains, m22_0=values['m22_0'], k_v=values['k_v'], P=values['P'])
     rules = AutoRules(enter_angle=values['enter_angle'], leave_angle=values['leave_angle'],
                       stop_deceleration=values['stop_deceleration'])
     return Candidate(gains, rules)
@@ -636,7 +641,8 @@ def table_lines(runs: Sequence[Run], before: Dict[str, dict], after: Dict[str, d
 
 def _candidate_lines(c: Candidate) -> List[str]:
     g, r = c.gains, c.rules
-    return ['IDA-PBC: k %.4g, m22_0 %.4g, k_v %.4g, P %.4g' % (g.k, g.m22_0, g.k_v, g.P),
+    return ['IDA-PBC: k %.4g, m22_0 %.4g, k_v %.4g, P %.4g, k_v_upright %.4g, k_v_width %.3f deg'
+            % (g.k, g.m22_0, g.k_v, g.P, g.k_v_upright, math.degrees(g.k_v_width)),
             'auto: enter_angle %.3f deg, leave_angle %.3f deg, stop_deceleration %.4g m/s^2'
             % (math.degrees(r.enter_angle), math.degrees(r.leave_angle), r.stop_deceleration)]
 
@@ -677,7 +683,8 @@ def tune(maxiter: int, popsize: int, seed: int, quick: bool = False) -> dict:
         'cost': cost_doc,
         'variables': [{'name': v.name, 'log10': v.log, 'lo': v.lo, 'hi': v.hi}
                       for v in VARIABLES],
-        'fixed': {'k': FIXED_K, 'hysteresis_min_deg': HYSTERESIS_MIN_DEG},
+        'fixed': {'k': FIXED_K, 'k_v_upright': START.gains.k_v_upright,
+                  'k_v_width': START.gains.k_v_width, 'hysteresis_min_deg': HYSTERESIS_MIN_DEG},
         'scenarios': [run.name for run in runs],
         'start': {'params': START.as_dict(), 'cost': j0, 'metrics': before},
         'best': {'params': best.as_dict(), 'cost': j_best, 'metrics': after},

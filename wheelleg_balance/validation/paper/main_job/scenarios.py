@@ -10,13 +10,14 @@ its tail, armed at sim time ``ARM_AT``; balance_node homes the hips, raises the 
 up. Times are seconds from the start of balancing (time 0, about ``HOMING_S`` after the arm);
 sim_node's own events run on sim time (``ARM_AT + HOMING_S + t``).
 """
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Dict, List, Optional, Tuple
 
 from .. import table
 from ..table import D_HAT0, DEG, HEIGHTS, PAPER_YAW_GAIN, SIM_YAW_GAIN
 from ....core.config import DEFAULTS
 from ....core.ida_pbc import TUNED_GAINS
+from ....core.params import IdaPbcGains, TABLE_I_IDA_PBC
 
 HEIGHT_MAX, HEIGHT_MIN = HEIGHTS[0], HEIGHTS[-1]
 #: LQR input weight of the softer linear start-up [1/N^2] (core/lqr.py default: 1/30^2).
@@ -34,6 +35,17 @@ SLOPE = {'slope.enabled': True, 'slope.start_x': 5.0, 'slope.length': 1.2,
 #: move; the default impedance, kp 60, lets the body roll 11 deg further on the ramp).
 FIXED_LEGS = {'legs.roll_kp': 0.0, 'legs.roll_ki': 0.0, 'legs.roll_kd': 0.0, 'legs.kp': 400.0,
               'legs.kd': 5.0}
+
+
+def ida_pbc_params(gains: IdaPbcGains) -> Dict[str, float]:
+    """balance_node's ``ida_pbc.*`` parameters that set ``gains``."""
+    return {'ida_pbc.' + f.name: getattr(gains, f.name) for f in fields(gains)}
+
+
+#: The paper's experiments (and slope_levelled, driven as slope is) run the paper's IDA-PBC
+#: (Table I; the defaults add damping near upright rest, docs/ida_pbc.md section 8): what
+#: config/paper_table_i.yaml sets.
+PAPER_IDA_PBC = ida_pbc_params(TABLE_I_IDA_PBC)
 
 
 @dataclass
@@ -133,11 +145,11 @@ _PLAYS: Dict[str, dict] = {
     # The default configuration (issue 12): long enough to come to rest (rest_time_s).
     'startup': {'duration': 8.0, 'panels': STARTUP_PANELS, 'short_duration': 4.0,
                 'controller': DEFAULTS.control.controller},
-    'startup_paper': {'duration': 6.0, 'panels': STARTUP_PANELS, 'short_duration': 4.0},
+    'startup_paper': {'duration': 6.0, 'panels': STARTUP_PANELS, 'short_duration': 4.0,
+                      'balance': PAPER_IDA_PBC},
     'startup_tuned': {
         'duration': 6.0, 'panels': STARTUP_PANELS, 'short_duration': 4.0,
-        'balance': {'ida_pbc.k': TUNED_GAINS.k, 'ida_pbc.m22_0': TUNED_GAINS.m22_0,
-                    'ida_pbc.k_v': TUNED_GAINS.k_v, 'ida_pbc.P': TUNED_GAINS.P}},
+        'balance': ida_pbc_params(TUNED_GAINS)},
     'startup_lqr': {'duration': 4.0, 'panels': STARTUP_PANELS, 'controller': 'lqr'},
     'startup_lqr_soft': {'duration': 6.0, 'panels': STARTUP_PANELS, 'short_duration': 4.0,
                          'controller': 'lqr', 'balance': {'output_regulation.r': SOFT_LQR_R}},
@@ -152,7 +164,7 @@ _PLAYS: Dict[str, dict] = {
         # Through the joystick's height buttons, teleop_node and cmd_height: balance_node shapes
         # each step at 0.1 m/s and 0.2 m/s^2 (0.70 -> 0.52 m in about 2.3 s), and the drives
         # pass each height for at least 1 s.
-        'duration': 26.5, 'panels': ('l', 'x_dot', 'theta', 'torques'),
+        'duration': 26.5, 'panels': ('l', 'x_dot', 'theta', 'torques'), 'balance': PAPER_IDA_PBC,
         'joy': [{'t': 0.0}] + UP_07 + [{'t': 5.0, 'v': 0.3}] + press(8.0, 0.52) +
         press(11.8, HEIGHT_MIN) + [{'t': 15.0, 'v': -0.3}] + press(16.5, 0.52) +
         press(20.5, HEIGHT_MAX) + [{'t': 25.0, 'v': 0.0}],
@@ -172,7 +184,7 @@ _PLAYS: Dict[str, dict] = {
                     (9.5, 'yaw_rate_source', DEFAULTS.control.yaw_rate_source)]},
     's_turn': {
         'duration': 18.0, 'panels': ('x_dot', 'yaw_rate', 'theta', 'torques'),
-        'balance': {'yaw_rate_gain': SIM_YAW_GAIN},
+        'balance': dict(PAPER_IDA_PBC, yaw_rate_gain=SIM_YAW_GAIN),
         # Driving off at 3 s leaves IDA-PBC's slow velocity loop 5 s to reach 0.3 m/s before
         # the turns; the operator's corrections (+-0.2 rad/s) within each turn, as in the paper.
         'joy': [{'t': 0.0}] + UP_07 + [
@@ -183,19 +195,21 @@ _PLAYS: Dict[str, dict] = {
         'joy_end': 17.5},
     'bumps': {
         'duration': 12.0, 'panels': ('theta', 'x_dot', 'x', 'torques'),
-        'sim': {'bumps': [3.0, 3.8], 'bump_height': 0.02},
+        'sim': {'bumps': [3.0, 3.8], 'bump_height': 0.02}, 'balance': PAPER_IDA_PBC,
         'joy': [{'t': 0.0}, {'t': 2.0, 'v': 1.0, 'turbo': True},
                 {'t': 10.0, 'v': 0.0, 'turbo': False}], 'joy_end': 11.0},
     'push': {'duration': 16.0, 'panels': PUSH_PANELS, 'pushes': KICKS,
              'controller': DEFAULTS.control.controller},
-    'push_paper': {'duration': 16.0, 'panels': PUSH_PANELS, 'pushes': KICKS},
+    'push_paper': {'duration': 16.0, 'panels': PUSH_PANELS, 'pushes': KICKS,
+                   'balance': PAPER_IDA_PBC},
     'slope': {
         'duration': 14.0, 'panels': ('theta', 'roll', 'x_dot', 'torques'),
-        'balance': dict(FIXED_LEGS, yaw_rate_gain=SIM_YAW_GAIN), 'sim': SLOPE,
+        'balance': dict(FIXED_LEGS, yaw_rate_gain=SIM_YAW_GAIN, **PAPER_IDA_PBC), 'sim': SLOPE,
         'joy': SLOPE_DRIVE, 'joy_end': 13.0},
     'slope_levelled': {
+        # Driven as slope drives it (the same IDA-PBC, Table I's): only the legs differ.
         'duration': 14.0, 'panels': ('theta', 'roll', 'l', 'x_dot'),
-        'balance': {'yaw_rate_gain': SIM_YAW_GAIN}, 'sim': SLOPE,
+        'balance': dict(PAPER_IDA_PBC, yaw_rate_gain=SIM_YAW_GAIN), 'sim': SLOPE,
         'joy': SLOPE_DRIVE, 'joy_end': 13.0},
     'sit_down': {
         # Balance, disarm (the sit-down), re-arm from the tail (the legs are homed: raise,
