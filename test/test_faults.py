@@ -255,8 +255,8 @@ def test_the_rig_stops_spinning_only_after_a_running_callback_ends(context):
     """
     A callback longer than the old 2 s join: stop() waits for it, or says it could not.
 
-    The old stop() returned during it and the nodes were destroyed under it (rclpy's "timer
-    is canceled" in the spin thread).
+    The old stop() (a 2 s join) returned during it, and the rig then destroyed the nodes
+    under the running callback.
     """
     errors = []
     hook = threading.excepthook

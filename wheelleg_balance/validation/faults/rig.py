@@ -271,8 +271,9 @@ class FakeRobot(Node):
 class Spinning:
     """Each node spun by an executor of its own on a daemon thread, until ``stop()``."""
 
-    #: How long ``stop`` waits for a callback still running to end [s] (a loaded machine has
-    #: kept one for over 2 s: the nodes were destroyed under it, "timer is canceled").
+    #: How long ``stop`` waits for a callback still running to end [s] (the 2 s join it had
+    #: could return during a callback slowed by a loaded machine, the nodes then destroyed
+    #: under it).
     STOP_TIMEOUT_S = 30.0
 
     def __init__(self, context, nodes):
