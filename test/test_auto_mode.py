@@ -73,8 +73,7 @@ def test_selecting_auto_live_goes_on_with_the_running_controller():
 
 def _start_up(controller, duration=10.0, gains=IdaPbcGains()):
     core = BalanceCore(RobotParams(), CoreConfig(controller=controller, ida_pbc=gains))
-    r = simulate(Scenario(controller=controller, duration=duration, imu_offset=D,
-                          ida_pbc_gains=gains), core)
+    r = simulate(Scenario(controller=controller, duration=duration, imu_offset=D), core)
     return r, core
 
 

@@ -118,7 +118,7 @@ def startup_overshoot_deg(d_hold_angle):
     from wheelleg_balance.core.simulation import simulate
     from wheelleg_balance.validation.paper.experiments import overshoot_deg
     sc = Scenario(controller='ida_pbc', duration=6.0, imu_offset=math.radians(2.2),
-                  d_hat0=math.radians(2.7), ida_pbc_gains=TABLE_I_IDA_PBC)
+                  d_hat0=math.radians(2.7))
     core = BalanceCore(RobotParams(), CoreConfig(d_hat0=sc.d_hat0, ida_pbc=TABLE_I_IDA_PBC))
     core.observer.d_hold_angle = d_hold_angle
     result = simulate(sc, core=core)

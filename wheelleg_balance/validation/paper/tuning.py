@@ -59,7 +59,8 @@ with k fixed at Table I's 0.015 -- (13) is invariant under (k, m22_0, k_v, P) ->
 lam m22_0, lam k_v, P / lam) (docs/ida_pbc.md, section 7), so a free k adds nothing but a flat
 direction; the auto thresholds enter_angle, leave_angle (deg) and stop_deceleration (log10),
 with the hysteresis enter_angle + HYSTERESIS_MIN_DEG <= leave_angle as a linear constraint.
-The damping's bell near upright (k_v_upright, k_v_width) stays at the defaults: it sets the
+The damping's bell near upright rest (k_v_upright, k_v_width, k_v_rate_width) stays at the
+defaults: it sets the
 loop's margins (docs/margins.md), not the rise. The start point (the defaults: Table I's
 k, m22_0, k_v, P with that bell, and the default thresholds) is put into the initial
 population, so the best found is never worse than the start on this cost.
@@ -71,7 +72,7 @@ than the overshoot target (the body decelerates at most g tan(overshoot)).
 """
 import argparse
 import copy
-from dataclasses import replace
+from dataclasses import asdict, fields, replace
 import json
 import math
 import os
@@ -172,10 +173,8 @@ class Candidate(NamedTuple):
     def as_dict(self) -> Dict[str, float]:
         """Return the parameters by name (angles in rad, as the configuration has them)."""
         g, r = self.gains, self.rules
-        return {'k': g.k, 'm22_0': g.m22_0, 'k_v': g.k_v, 'P': g.P,
-                'k_v_upright': g.k_v_upright, 'k_v_width': g.k_v_width,
-                'enter_angle': r.enter_angle, 'leave_angle': r.leave_angle,
-                'stop_deceleration': r.stop_deceleration}
+        return dict(asdict(g), enter_angle=r.enter_angle, leave_angle=r.leave_angle,
+                    stop_deceleration=r.stop_deceleration)
 
 
 #: The start point: the default IDA-PBC gains and thresholds.
@@ -184,8 +183,8 @@ START = Candidate(IdaPbcGains(), AutoRules())
 
 def candidate_from(params: Dict[str, float]) -> Candidate:
     """Return the candidate of ``Candidate.as_dict``'s output (e.g. a report's params)."""
-    names = ('k', 'm22_0', 'k_v', 'P', 'k_v_upright', 'k_v_width')
-    gains = IdaPbcGains(**{k: params[k] for k in names if k in params})
+    gains = IdaPbcGains(**{f.name: params[f.name] for f in fields(IdaPbcGains)
+                           if f.name in params})
     names = ('enter_angle', 'leave_angle', 'stop_deceleration')
     rules = AutoRules(**{k: params[k] for k in names})
     return Candidate(gains, rules)
@@ -641,8 +640,10 @@ def table_lines(runs: Sequence[Run], before: Dict[str, dict], after: Dict[str, d
 
 def _candidate_lines(c: Candidate) -> List[str]:
     g, r = c.gains, c.rules
-    return ['IDA-PBC: k %.4g, m22_0 %.4g, k_v %.4g, P %.4g, k_v_upright %.4g, k_v_width %.3f deg'
-            % (g.k, g.m22_0, g.k_v, g.P, g.k_v_upright, math.degrees(g.k_v_width)),
+    return ['IDA-PBC: k %.4g, m22_0 %.4g, k_v %.4g, P %.4g; k_v_upright %.4g, k_v_width %.3f '
+            'deg, k_v_rate_width %.4g rad/s'
+            % (g.k, g.m22_0, g.k_v, g.P, g.k_v_upright, math.degrees(g.k_v_width),
+               g.k_v_rate_width),
             'auto: enter_angle %.3f deg, leave_angle %.3f deg, stop_deceleration %.4g m/s^2'
             % (math.degrees(r.enter_angle), math.degrees(r.leave_angle), r.stop_deceleration)]
 
@@ -684,7 +685,9 @@ def tune(maxiter: int, popsize: int, seed: int, quick: bool = False) -> dict:
         'variables': [{'name': v.name, 'log10': v.log, 'lo': v.lo, 'hi': v.hi}
                       for v in VARIABLES],
         'fixed': {'k': FIXED_K, 'k_v_upright': START.gains.k_v_upright,
-                  'k_v_width': START.gains.k_v_width, 'hysteresis_min_deg': HYSTERESIS_MIN_DEG},
+                  'k_v_width': START.gains.k_v_width,
+                  'k_v_rate_width': START.gains.k_v_rate_width,
+                  'hysteresis_min_deg': HYSTERESIS_MIN_DEG},
         'scenarios': [run.name for run in runs],
         'start': {'params': START.as_dict(), 'cost': j0, 'metrics': before},
         'best': {'params': best.as_dict(), 'cost': j_best, 'metrics': after},
