@@ -498,12 +498,19 @@ def certify(controller_name: str, gains_set: str, heights: Optional[Sequence[flo
     if controller_name not in CONTROLLER_NAMES:
         raise ValueError('unknown controller %r (one of %s)'
                          % (controller_name, ', '.join(CONTROLLER_NAMES)))
-    core = build_core(gains_set, cfg)
     if heights is None:
         heights = height_grid(0.01, cfg.model)
-    out = []
-    for l in heights:
-        loop = build_loop(core.controllers[controller_name], core.observer, float(l), core.p,
-                          core.dt)
-        out.append(loop_margins(loop, float(l), controller_name, gains_set))
-    return out
+    return core_margins(build_core(gains_set, cfg), controller_name, heights, gains_set)
+
+
+def core_margins(core: BalanceCore, controller_name: str, heights: Sequence[float],
+                 gains_set: str = '') -> List[Margins]:
+    """
+    Return the Margins of ``core``'s controller ``controller_name`` at every height [m].
+
+    ``certify`` for a core built elsewhere (e.g. the tuning's candidates); gains_set: the
+    label the Margins carry.
+    """
+    return [loop_margins(build_loop(core.controllers[controller_name], core.observer, float(l),
+                                    core.p, core.dt), float(l), controller_name, gains_set)
+            for l in heights]
