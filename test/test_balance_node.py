@@ -335,7 +335,8 @@ def rig(make_rig):
 
 
 def _fresh_status(rig):
-    """Return (time [s], skipped deadlines) of a loop status sent after this call (10 per s).
+    """
+    Return (time [s], skipped deadlines) of a loop status sent after this call (10 per s).
 
     The time is the tick's own (CLOCK_MONOTONIC) at which the loop took the status.
     """

@@ -2,10 +2,14 @@
 The ``tuning`` command (validation/paper/tuning.py, issue 12 item 4): its cost and a quick run.
 
 The claims: the cost is deterministic (fixed seeds), a fall ranks behind any run set without
-one, the targets live in one place (TARGETS), the search stays within the parameters' ranges
-with the hysteresis, and ``--quick`` runs end to end and never returns worse than its start.
+one, a miss of the rest targets ranks behind more overshoot, the targets live in one place
+(TARGETS), the search stays within the parameters' ranges with the hysteresis, a MuJoCo play
+from its snapshot is the run with the candidate's parameters from power-up, the result does
+not depend on the number of workers, and ``--quick`` runs end to end on either plant and never
+returns worse than its start.
 """
 import contextlib
+from dataclasses import replace
 import io
 import json
 import math
@@ -16,8 +20,10 @@ import pytest
 
 from wheelleg_balance.core.margins import REQUIRED_GAIN_MARGIN_DB
 from wheelleg_balance.core.params import IdaPbcGains, TABLE_I_IDA_PBC
+from wheelleg_balance.core.safety import Mode
 from wheelleg_balance.core.simulation import Scenario, simulate
-from wheelleg_balance.validation.paper import tuning
+from wheelleg_balance.validation.lockstep import Lockstep
+from wheelleg_balance.validation.paper import mujoco_runs, tuning
 from wheelleg_balance.validation.paper.experiments import SENSOR_NOISE
 
 DEG = math.pi / 180.0
@@ -79,6 +85,24 @@ def test_a_real_fall_is_penalised():
     m = tuning.evaluate(weak, runs)
     assert m['startup/fall']['fell']
     assert tuning.cost(m, runs) > tuning.FALL_PENALTY
+
+
+def test_a_miss_of_the_rest_targets_ranks_behind_more_overshoot():
+    # 1 deg of overshoot is out of reach (rise_estimate); the rest targets are not: 10 cm past
+    # the 1 m costs more than 1.5 deg more overshoot near 5 deg, as does 0.3 s past the 3 s.
+    base = {'fell': False, 'saturated_s': 0.0, 'overshoot_deg': 5.0, 'rest_time_s': 2.0,
+            'rest_distance_m': 0.95}
+    more_overshoot = dict(base, overshoot_deg=6.5)
+    too_far = dict(base, rest_distance_m=1.1)
+    too_late = dict(base, rest_time_s=3.3)
+    cost = tuning.run_cost
+    assert cost('startup', base) < cost('startup', more_overshoot)
+    assert cost('startup', more_overshoot) < cost('startup', too_far)
+    assert cost('startup', more_overshoot) < cost('startup', too_late)
+    # Within the targets only the small linear term is left (no miss weight).
+    closer = dict(base, rest_distance_m=0.5)
+    assert cost('startup', base) - cost('startup', closer) == pytest.approx(
+        tuning.EPS * (0.95 - 0.5) / tuning.TARGETS['startup']['rest_distance_m'])
 
 
 def test_the_targets_are_read_from_one_place(monkeypatch):
@@ -147,8 +171,8 @@ def test_quick_runs_end_to_end_and_is_no_worse_than_its_start(tmp_path):
     t0 = time.monotonic()
     with contextlib.redirect_stdout(buf):
         assert tuning.main(['--quick', '--output', str(out), '--seed', '3']) == 0
-    assert time.monotonic() - t0 < 60.0
     report = json.loads(out.read_text())
+    assert report['plant'] == 'mujoco' and report['meta']['wall_s'] <= time.monotonic() - t0
     assert report['targets'] == tuning.TARGETS
     assert report['best']['cost'] <= report['start']['cost']
     assert report['optimizer']['nfev'] >= 2
@@ -164,3 +188,50 @@ def test_quick_runs_end_to_end_and_is_no_worse_than_its_start(tmp_path):
     for run in runs:
         assert '| %s |' % run.name in text
     assert 'before (cost' in text and 'after (cost' in text
+
+
+def test_the_scenario_sets_of_the_two_plants():
+    mujoco = tuning.scenarios()
+    plays = [run for run in mujoco if run.play is not None]
+    # The start-ups at every offset, and main_job's standing hand-over, run in MuJoCo.
+    assert sorted(run.play.imu_offset for run in plays if run.group == 'startup') == \
+        sorted(tuning.OFFSETS)
+    standing = [run for run in plays if run.group == 'standing']
+    assert len(standing) == 1 and standing[0].play.switch_at == tuning.STANDING_SWITCH_S
+    assert dict(standing[0].play.params)['controller'] == 'ida_pbc'
+    assert {run.group for run in mujoco if run.play is None} == {'velocity_step', 'push'}
+    model = tuning.scenarios(plant='model')
+    assert all(run.play is None for run in model)
+    assert 'standing' not in {run.group for run in model}
+    with pytest.raises(ValueError):
+        tuning.scenarios(plant='bench')
+
+
+def test_a_play_from_its_snapshot_is_the_run_with_the_parameters_from_power_up():
+    play = mujoco_runs.Play(2.2 * DEG, 1.0)
+    candidate = tuning.Candidate(replace(tuning.START.gains, m22_0=0.1, P=0.5),
+                                 replace(tuning.START.rules, enter_angle=5.0 * DEG))
+    params = tuning.node_parameters(candidate)
+    from_snapshot = mujoco_runs.run_play(play, params)
+    # The same robot with the candidate's parameters from power-up, run by hand.
+    ls = Lockstep(params, imu_offset=play.imu_offset)
+    ls.run(mujoco_runs.ARM_AT)
+    ls.arm(True)
+    ls.run(mujoco_runs.HOMING_LIMIT, until=lambda: ls.mode == int(Mode.BALANCING))
+    t0 = ls.log[-1]['t']
+    ls.run(play.duration - ls.period)
+    theta = np.array(ls.series('theta_true', since=t0))
+    assert from_snapshot.t[0] == 0.0 and from_snapshot.theta.size == theta.size
+    assert np.array_equal(from_snapshot.theta, theta)
+    assert np.array_equal(from_snapshot.x, np.array(ls.series('x_true', since=t0)))
+    # ... and the parameters were applied: the defaults rise otherwise.
+    default = mujoco_runs.run_play(play, tuning.node_parameters(tuning.START))
+    assert not np.array_equal(default.theta, from_snapshot.theta)
+
+
+def test_the_result_does_not_depend_on_the_number_of_workers():
+    one = tuning.tune(1, 1, seed=5, quick=True, plant='model', workers=1)
+    two = tuning.tune(1, 1, seed=5, quick=True, plant='model', workers=2)
+    assert one['best']['params'] == two['best']['params']
+    assert one['best']['cost'] == two['best']['cost']
+    assert one['optimizer']['nfev'] == two['optimizer']['nfev']

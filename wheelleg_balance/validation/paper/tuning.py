@@ -1,24 +1,34 @@
 """
 tuning: the start-up gains and the auto mode's thresholds by optimisation (issue 12, item 4).
 
-``tuning [--output FILE] [--maxiter N] [--popsize N] [--seed N] [--quick]`` searches, with
-scipy.optimize.differential_evolution (fixed seed, ``workers=1``, no polish), the IDA-PBC
-parameters of (13) and the thresholds of ``controller: auto`` (core/auto_mode.py) on a fixed set
-of closed-loop runs of model (1) (core/simulation.py: the node's own BalanceCore, 2 ms). It
-prints a before/after table (the start point vs the best found) of every metric per scenario,
-with the targets, and writes a JSON report (default ``./tuning_report.json``). It changes no
-default: the numbers are for a person to decide on (docs/auto_mode.md has the runs and why
-their best points were not adopted). Deterministic: the same arguments give the same report
-(CPU times aside). The default budget (10 generations of 24 members, about 230 evaluations of
-about 3 s each) takes about 12 min of CPU (2026-12-03, 2-core VM, Python 3.11); ``--quick`` a
-few seconds.
+``tuning [--plant mujoco|model] [--output FILE] [--maxiter N] [--popsize N] [--seed N]
+[--workers N] [--quick]`` searches, with scipy.optimize.differential_evolution (fixed seed,
+deferred updating, no polish), the IDA-PBC parameters of (13) and the thresholds of
+``controller: auto`` (core/auto_mode.py) on a fixed set of closed-loop runs. It prints a
+before/after table (the start point vs the best found) of every metric per scenario, with the
+targets, and writes a JSON report (default ``./tuning_report.json``). It changes no file: a
+person copies the best point into config/balance.yaml (docs/auto_mode.md has the runs, the one
+the defaults come from, and why earlier best points were not adopted). Deterministic: the same
+arguments give the same report (times aside), whatever ``--workers`` (processes that evaluate
+a generation; a generation is evaluated as a whole). ``--quick``: a tiny budget, short runs.
 
-Scenarios (``scenarios()``; every run ``controller: auto``, the robot's 12 N m wheel limit):
+Scenarios (``scenarios()``; every run ``controller: auto``, the robot's 12 N m wheel limit).
+``--plant mujoco`` (the default) runs the start-ups and main_job's standing hand-over in MuJoCo
+(mujoco_runs.py: balance_node's own tick against the MuJoCo robot and its six motors, in
+lockstep; model (1) misjudges the start-up's roll-out, about twice MuJoCo's), the rest on
+model (1) (core/simulation.py: the node's own BalanceCore, 2 ms); ``--plant model`` all on
+model (1):
 
-- ``startup/l<l>/d<d>``: from the tail (36 deg, at rest) at l in {0.37, 0.55, 0.70} m and
-  IMU offset d in {0, +2.2, -2.2} deg (d_hat0 = 0: the observer has to find d), 6 s;
-- ``startup_noise/...``: two of them again with experiments.SENSOR_NOISE (pitch 0.2 deg, pitch
-  rate 0.02 rad/s, wheel speed 0.05 rad/s) and the fixed seeds 1 and 2;
+- ``mujoco/startup/d<d>``: armed on the tail after power-up (the legs raise to height_min), from
+  the start of balancing, 6 s; IMU offset d in {0, +2.2, -2.2} deg (d_hat0 = 0: the observer
+  has to find d). The robot always rises at height_min (the stand-up), so that is where the
+  start-up is judged;
+- ``mujoco/standing``: main_job's ``standing``: ``controller: ida_pbc`` with d_hat0 2.7 deg
+  (d 2.2), output regulation from 3 s, the drift judged over 8..13 s (``drift_m``; main_job's
+  hold is 8..28 s);
+- ``startup/l0.37/d<d>`` (``--plant model``): the same start-ups on model (1) (from the tail, 36
+  deg, at rest); ``startup_noise/...``: two of them again with experiments.SENSOR_NOISE (pitch
+  0.2 deg, pitch rate 0.02 rad/s, wheel speed 0.05 rad/s) and the fixed seeds 1 and 2;
 - ``velocity_step``: upright at l = 0.37 m, the stick asks 0.5 m/s at 1.5 s and 0 at 4.5 s;
   x_dot* is that command through the node's reference shaper (core/reference.py, 1 m/s^2);
 - ``push``: upright at l = 0.37 m, a kick on the body of 60 N for 0.1 s forward at 2 s and
@@ -27,11 +37,13 @@ Scenarios (``scenarios()``; every run ``controller: auto``, the robot's 12 N m w
 
 Metrics (``TARGETS`` holds the issue's targets, the one place they are stated):
 
-- start-up: ``overshoot_deg`` (experiments.overshoot_deg: true pitch past 0 away from the tail),
-  ``rest_time_s`` (from arming until |x_dot| stays within ``REST_SPEED`` 0.05 m/s, the true
-  speed, metrics.settling_time), ``rest_distance_m`` (|x at that time - x at arming|). A run
-  still moving at its end extrapolates a stop at ``EXTRAPOLATION_DECEL`` (0.5 m/s^2): rest time
-  = duration + |x_dot| / a, distance = |x - x0| + x_dot^2 / (2 a);
+- start-up: ``overshoot_deg`` (model (1): experiments.overshoot_deg, true pitch past 0 away
+  from the tail; MuJoCo: past the final pitch, as main_job), ``rest_time_s`` (from arming until
+  |x_dot| stays within ``REST_SPEED`` 0.05 m/s, the true speed, metrics.settling_time),
+  ``rest_distance_m`` (|x at that time - x at arming|). A run still moving at its end
+  extrapolates a stop at ``EXTRAPOLATION_DECEL`` (0.5 m/s^2): rest time = duration + |x_dot| /
+  a, distance = |x - x0| + x_dot^2 / (2 a);
+- standing: ``drift_m`` (|x(13 s) - x(8 s)|, true axle, against main_job's 5 s target);
 - velocity step: ``rise_time_s`` (10 to 90 % of the 0.5 m/s, the larger of the step up and
   down, from the true speed), ``overshoot_pct`` (past 0.5 m/s going up, below 0 coming back, in
   % of 0.5 m/s), ``pitch_peak_deg`` (max |theta| from the step on);
@@ -41,11 +53,14 @@ Metrics (``TARGETS`` holds the issue's targets, the one place they are stated):
 - every run: ``fell``, ``peak_torque_nm``, ``saturated_s`` (time at the torque limit).
 
 Cost (``cost``), with r = min(metric / target, R_CAP) per metric and f(r) = max(0, r - 1)^2 +
-``EPS`` r (the square penalises a miss, the small linear term keeps improving below target):
+``EPS`` r (the square penalises a miss, the small linear term keeps improving below target),
+plus ``MISS_WEIGHTS`` w_m (r - 1) for a missed rest target or standing drift (w = 200: they are
+within reach, the 1 deg overshoot is not, so the search comes as close to 1 deg as they allow):
 
-    J = sum over groups g (start-up, velocity step, push) of W_g * mean over the runs s of g of
-        [ sum over the metrics m of g of f(r_sm) + TORQUE_WEIGHT min(saturated_s / SAT_UNIT_S,
-        R_CAP)^2 ]  +  FALL_PENALTY * (number of runs that fell)
+    J = sum over groups g (start-up, velocity step, push, standing) of W_g * mean over the runs
+        s of g of [ sum over the metrics m of g of (f(r_sm) + w_m max(0, r_sm - 1))
+        + TORQUE_WEIGHT min(saturated_s / SAT_UNIT_S, R_CAP)^2 ]
+        +  FALL_PENALTY * (number of runs that fell)
 
 The start-up runs with noise belong to the start-up group. A run that fell counts every term
 of its own at the cap; ``FALL_PENALTY`` exceeds the largest cost a run set without a fall can
@@ -90,11 +105,13 @@ from scipy.optimize import brentq, differential_evolution, LinearConstraint
 
 from .experiments import overshoot_deg, SENSOR_NOISE
 from .metrics import settling_time
+from .mujoco_runs import hold_drift, Play, run_play, startup_figures
 from .table import DEG, REST_SPEED, STARTUP_TARGETS
 from .. import json_safe
 from ...core.auto_mode import AutoRules
 from ...core.margins import core_margins
 from ...core.model import ipc_accel_moving
+from ...core.output_regulation import HoldShape
 from ...core.params import IdaPbcGains, RobotParams
 from ...core.pipeline import BalanceCore, CoreConfig, Reference
 from ...core.reference import ReferenceShaper
@@ -106,11 +123,21 @@ TARGETS: Dict[str, Dict[str, float]] = {
     'startup': dict(STARTUP_TARGETS),
     'velocity_step': {'rise_time_s': 1.0, 'overshoot_pct': 10.0, 'pitch_peak_deg': 8.0},
     'push': {'pitch_peak_deg': 3.0, 'recovery_s': 1.0},
+    # main_job's standing holds 20 s from 8 s (drift_20s_m <= 0.01 m, drift_last5_m <= 0.005
+    # m): judged here over its first STANDING_WINDOW_S with the 5 s target, where a robot still
+    # braking after the hand-over moves.
+    'standing': {'drift_m': 0.005},
 }
 #: Wheel torque limit of the targets and of the core [N m].
 TORQUE_LIMIT = 12.0
 #: Weight of each group in the cost.
-GROUP_WEIGHTS = {'startup': 1.0, 'velocity_step': 1.0, 'push': 1.0}
+GROUP_WEIGHTS = {'startup': 1.0, 'velocity_step': 1.0, 'push': 1.0, 'standing': 1.0}
+#: Metrics whose miss costs MISS_WEIGHT * (r - 1) on top of f(r): the rest targets and the
+#: standing drift are within reach (rise_estimate; the defaults meet the drift), the 1 deg
+#: overshoot is not, so the search comes as close to it as the others allow instead of trading
+#: them away (a 10 % miss of one costs as much as 2 deg more overshoot from 5 deg). The first
+#: MuJoCo run without the drift's weight (2026-12-04) gave standing's drift up for 1 deg.
+MISS_WEIGHTS = {'rest_time_s': 200.0, 'rest_distance_m': 200.0, 'drift_m': 200.0}
 #: f(r) = max(0, r - 1)^2 + EPS r, r capped at R_CAP.
 EPS = 0.1
 R_CAP = 30.0
@@ -129,12 +156,23 @@ EXTRAPOLATION_DECEL = 0.5
 #: Band of the push's recovery time [deg].
 RECOVERY_BAND_DEG = 1.0
 
-#: The start-up grid: heights [m] and IMU offsets d [rad].
-HEIGHTS = (0.37, 0.55, 0.70)
+#: The start-up grid: heights [m] and IMU offsets d [rad]. The robot always rises at height_min
+#: (issue 10's stand-up: armed on the tail at the lowest height, it rises, then goes to the
+#: commanded height), so the start-ups are judged there.
+HEIGHTS = (0.37,)
 OFFSETS = (0.0, 2.2 * DEG, -2.2 * DEG)
 #: Start-ups repeated with sensor noise: (l [m], d [rad], seed).
-NOISY = ((0.37, 2.2 * DEG, 1), (0.70, -2.2 * DEG, 2))
+NOISY = ((0.37, 2.2 * DEG, 1), (0.37, -2.2 * DEG, 2))
 STARTUP_DURATION = 6.0
+#: The plants a run set can judge the start-up on (``scenarios``).
+PLANTS = ('mujoco', 'model')
+#: main_job's standing in MuJoCo: IDA-PBC alone from the tail with d_hat0 2.7 deg (d 2.2),
+#: output regulation from STANDING_SWITCH_S, the drift judged from STANDING_FROM_S (main_job's
+#: hold starts there) for STANDING_WINDOW_S.
+STANDING_SWITCH_S = 3.0
+STANDING_FROM_S = 8.0
+STANDING_WINDOW_S = 5.0
+STANDING_D_HAT0 = 2.7 * DEG
 #: Velocity step: commanded speed [m/s], command times [s], run length [s], shaper limit.
 STEP_SPEED = 0.5
 STEP_UP_S = 1.5
@@ -171,7 +209,10 @@ VARIABLES: Tuple[Variable, ...] = (
     # The hold hands a robot back to IDA-PBC within 15 deg: a linear design holds near upright
     # (the 2026-12-03 run without this bound chose 22.8 deg, a fall handed to the hold).
     Variable('leave_angle', False, 5.0 * DEG, 15.0 * DEG),
-    Variable('stop_deceleration', True, 0.05, 3.0),
+    # The hold leans at most max_lean_move while x_dot* != 0 (the brake's ramp included): a
+    # brake harder than g tan(max_lean_move) (1.38 m/s^2 at 8 deg) is one it cannot follow.
+    Variable('stop_deceleration', True, 0.05,
+             RobotParams().gravity * math.tan(HoldShape().max_lean_move)),
 )
 
 
@@ -250,14 +291,16 @@ class Run(NamedTuple):
     One scenario: its name, group (a key of TARGETS) and what to simulate.
 
     kicks: KickedPlant's kicks (the push); step: when the stick asks STEP_SPEED and when 0
-    again [s] (the velocity step).
+    again [s] (the velocity step); play: run in MuJoCo instead (mujoco_runs.py; ``scenario``
+    is then None).
     """
 
     name: str
     group: str
-    scenario: Scenario
+    scenario: Optional[Scenario]
     kicks: Tuple[Tuple[float, float, float], ...] = ()
     step: Tuple[float, ...] = ()
+    play: Optional[Play] = None
 
 
 def shaped_reference(commands: Sequence[Tuple[float, float]], duration: float,
@@ -286,20 +329,35 @@ def shaped_reference(commands: Sequence[Tuple[float, float]], duration: float,
     return tuple(points)
 
 
-def scenarios(quick: bool = False) -> Tuple[Run, ...]:
+def scenarios(quick: bool = False, plant: str = 'mujoco') -> Tuple[Run, ...]:
     """
     Return the scenario set (module docstring); ``quick``: one start-up, short runs (tests).
 
-    Every Scenario names controller 'auto'; the core that runs it comes from ``make_core``.
+    plant 'mujoco': the start-ups and the standing hand-over in MuJoCo (mujoco_runs.py), the
+    velocity step and the push on model (1) (the hold does them; the variables barely reach
+    them); 'model': everything on model (1), no standing run. Every model-(1) Scenario names
+    controller 'auto'; the core that runs it comes from ``make_core``.
     """
+    if plant not in PLANTS:
+        raise ValueError('plant must be one of %s, not %r' % (PLANTS, plant))
     runs = []
     grid = [(0.37, 2.2 * DEG)] if quick else [(l, d) for l in HEIGHTS for d in OFFSETS]
     duration = 3.0 if quick else STARTUP_DURATION
+    if plant == 'mujoco':
+        for _, d in grid:
+            runs.append(Run('mujoco/startup/d%+.1f' % (d / DEG), 'startup', None,
+                            play=Play(d, duration)))
+        if not quick:
+            runs.append(Run('mujoco/standing', 'standing', None, play=Play(
+                2.2 * DEG, STANDING_FROM_S + STANDING_WINDOW_S,
+                (('controller', 'ida_pbc'), ('d_hat0', STANDING_D_HAT0)),
+                STANDING_SWITCH_S)))
+        grid = []
     for l, d in grid:
         runs.append(Run('startup/l%.2f/d%+.1f' % (l, d / DEG), 'startup', Scenario(
             name='startup', controller='auto', duration=duration, theta0=TAIL_ANGLE,
             imu_offset=d, height=l)))
-    for l, d, seed in (() if quick else NOISY):
+    for l, d, seed in (() if quick or plant == 'mujoco' else NOISY):
         runs.append(Run('startup_noise/l%.2f/d%+.1f/seed%d' % (l, d / DEG, seed), 'startup',
                         Scenario(name='startup_noise', controller='auto', duration=duration,
                                  theta0=TAIL_ANGLE, imu_offset=d, height=l,
@@ -475,8 +533,31 @@ def push_metrics(r: SimResult, kicks) -> dict:
             'recovery_s': max(recoveries) if recoveries else 0.0}
 
 
+def node_parameters(c: Candidate) -> Dict[str, float]:
+    """Return the candidate as balance_node parameters (ida_pbc.*, auto.*; SI units)."""
+    out = {'ida_pbc.' + k: v for k, v in asdict(c.gains).items()}
+    out.update({'auto.' + k: getattr(c.rules, k)
+                for k in ('enter_angle', 'leave_angle', 'stop_deceleration')})
+    return out
+
+
+def run_play_metrics(run: Run, c: Candidate) -> dict:
+    """Run a MuJoCo play with a candidate and return its metrics (mujoco_runs.py)."""
+    tr = run_play(run.play, node_parameters(c))
+    at_limit = tr.tau >= TORQUE_LIMIT * (1 - 1e-9)
+    m = {'fell': tr.fell, 'peak_torque_nm': float(np.max(tr.tau)),
+         'saturated_s': float(np.count_nonzero(at_limit) * tr.period), 'switches': tr.switches}
+    if run.group == 'startup':
+        m.update(startup_figures(tr, REST_SPEED, EXTRAPOLATION_DECEL))
+    else:
+        m['drift_m'] = hold_drift(tr, STANDING_FROM_S)
+    return m
+
+
 def run_one(run: Run, c: Candidate) -> dict:
     """Simulate one scenario with a candidate and return its metrics."""
+    if run.play is not None:
+        return run_play_metrics(run, c)
     core = make_core(c)
     if run.kicks:
         r = simulate_kicked(run.scenario, core, run.kicks)
@@ -508,8 +589,11 @@ def run_cost(group: str, m: dict) -> float:
     """Return a run's terms of the cost without the fall penalty (module docstring)."""
     targets = TARGETS[group]
     if m['fell']:
-        return len(targets) * _f(R_CAP) + TORQUE_WEIGHT * R_CAP ** 2
-    total = sum(_f(max(0.0, m[k]) / target) for k, target in targets.items())
+        return _fall_terms(group) + TORQUE_WEIGHT * R_CAP ** 2
+    total = 0.0
+    for k, target in targets.items():
+        r = max(0.0, m[k]) / target
+        total += _f(r) + MISS_WEIGHTS.get(k, 0.0) * max(0.0, min(r, R_CAP) - 1.0)
     sat = min(m['saturated_s'] / SAT_UNIT_S, R_CAP)
     return total + TORQUE_WEIGHT * sat * sat
 
@@ -528,8 +612,13 @@ def cost(metrics: Dict[str, dict], runs: Sequence[Run]) -> float:
 
 def max_cost_without_fall() -> float:
     """Return the largest cost a run set without a fall can have (every term at its cap)."""
-    return sum(w * (len(TARGETS[g]) * _f(R_CAP) + TORQUE_WEIGHT * R_CAP ** 2)
+    return sum(w * (_fall_terms(g) + TORQUE_WEIGHT * R_CAP ** 2)
                for g, w in GROUP_WEIGHTS.items())
+
+
+def _fall_terms(group: str) -> float:
+    """Return the metric terms of a run of ``group`` with every metric at the cap."""
+    return sum(_f(R_CAP) + MISS_WEIGHTS.get(k, 0.0) * (R_CAP - 1.0) for k in TARGETS[group])
 
 
 def certification(c: Candidate, heights: Sequence[float] = CERT_HEIGHTS) -> dict:
@@ -685,24 +774,26 @@ def _candidate_lines(c: Candidate) -> List[str]:
 
 # ------------------------------------------------------------------------------------ main
 
-def tune(maxiter: int, popsize: int, seed: int, quick: bool = False) -> dict:
+def tune(maxiter: int, popsize: int, seed: int, quick: bool = False, plant: str = 'mujoco',
+         workers: int = 1) -> dict:
     """
     Run the search and return the report (a JSON-safe dict).
 
     differential_evolution over ``VARIABLES`` with the hysteresis constraint, ``x0`` = START,
     Latin hypercube start population of popsize * len(VARIABLES) (at least 5) members,
-    ``maxiter`` generations, ``seed``, ``workers=1``, ``polish=False``.
+    ``maxiter`` generations, ``seed``, ``polish=False``, ``updating='deferred'`` (a generation
+    is evaluated as a whole, so ``workers`` processes give the same result as one).
     """
     check_bounds()
-    cpu0 = time.process_time()
-    runs = scenarios(quick)
+    cpu0, wall0 = time.process_time(), time.monotonic()
+    runs = scenarios(quick, plant)
     objective = Objective(runs)
     z0 = encode(START)
     j0, before, margins0 = objective.evaluate(z0)
     result = differential_evolution(
         objective, search_bounds(), constraints=(hysteresis_constraint(),), x0=z0,
-        seed=seed, maxiter=maxiter, popsize=popsize, polish=False, workers=1,
-        updating='immediate', init='latinhypercube', tol=0.0)
+        seed=seed, maxiter=maxiter, popsize=popsize, polish=False, workers=workers,
+        updating='deferred', init='latinhypercube', tol=0.0)
     z_best = result.x if result.fun <= j0 else z0
     j_best, after, margins_best = objective.evaluate(z_best)
     best = decode(z_best)
@@ -713,8 +804,8 @@ def tune(maxiter: int, popsize: int, seed: int, quick: bool = False) -> dict:
         'group_weights': GROUP_WEIGHTS, 'EPS': EPS, 'R_CAP': R_CAP,
         'TORQUE_WEIGHT': TORQUE_WEIGHT, 'SAT_UNIT_S': SAT_UNIT_S, 'FALL_PENALTY': FALL_PENALTY,
         'UNCERTIFIED_PENALTY': UNCERTIFIED_PENALTY, 'CERT_HEIGHTS': CERT_HEIGHTS}
-    command = 'tuning --maxiter %d --popsize %d --seed %d%s' % (
-        maxiter, popsize, seed, ' --quick' if quick else '')
+    command = 'tuning --plant %s --maxiter %d --popsize %d --seed %d%s' % (
+        plant, maxiter, popsize, seed, ' --quick' if quick else '')
     report = {
         'command': command,
         'targets': TARGETS,
@@ -725,16 +816,20 @@ def tune(maxiter: int, popsize: int, seed: int, quick: bool = False) -> dict:
                   'k_v_width': START.gains.k_v_width,
                   'k_v_rate_width': START.gains.k_v_rate_width,
                   'hysteresis_min_deg': HYSTERESIS_MIN_DEG},
+        'plant': plant,
         'scenarios': [run.name for run in runs],
         'start': {'params': START.as_dict(), 'cost': j0, 'metrics': before,
                   'margins': margins0},
         'best': {'params': best.as_dict(), 'cost': j_best, 'metrics': after,
                  'margins': margins_best},
         'optimizer': {'method': 'scipy.optimize.differential_evolution', 'seed': seed,
-                      'maxiter': maxiter, 'popsize': popsize, 'nfev': len(objective.seen),
+                      'maxiter': maxiter, 'popsize': popsize, 'nfev': int(result.nfev),
+                      'updating': 'deferred', 'workers': workers,
                       'message': str(result.message)},
+        # cpu_s: this process only (the workers' CPU is not in it); wall_s: the whole search.
         'meta': {'quick': quick, 'python': platform.python_version(),
-                 'machine': platform.machine(), 'cpu_s': time.process_time() - cpu0},
+                 'machine': platform.machine(), 'cpu_s': time.process_time() - cpu0,
+                 'wall_s': time.monotonic() - wall0},
     }
     if not quick:
         report['rise_estimate'] = [rise_estimate(l, TARGETS['startup']['overshoot_deg'])
@@ -754,7 +849,9 @@ def print_report(report: dict, runs: Sequence[Run]) -> None:
                  g['gain_margin_down_db'], 1e3 * g['delay_margin_s'],
                  'certified' if g['certified'] else 'NOT certified'))
     opt, meta = report['optimizer'], report['meta']
-    print('%d evaluations, %.0f s CPU' % (opt['nfev'], meta['cpu_s']))
+    workers = opt['workers']
+    print('%d evaluations, %.0f s (%d worker%s)' % (opt['nfev'], meta['wall_s'], workers,
+                                                    '' if workers == 1 else 's'))
     print()
     print('\n'.join(table_lines(runs, report['start']['metrics'], report['best']['metrics'])))
     for e in report.get('rise_estimate', ()):
@@ -769,8 +866,14 @@ def print_report(report: dict, runs: Sequence[Run]) -> None:
 def main(argv=None) -> int:
     """Entry point of the ``tuning`` executable."""
     parser = argparse.ArgumentParser(
-        prog='tuning', description='Tune the IDA-PBC gains and the auto thresholds on model '
-        '(1) (differential evolution, fixed scenarios and seeds; prints before/after).')
+        prog='tuning', description='Tune the IDA-PBC gains and the auto thresholds: the '
+        'start-up in MuJoCo (or on model (1)), the velocity step and push on model (1) '
+        '(differential evolution, fixed scenarios and seeds; prints before/after).')
+    parser.add_argument('--plant', choices=PLANTS, default='mujoco',
+                        help='where the start-ups run (default mujoco: the lockstep robot)')
+    parser.add_argument('--workers', type=int, default=1,
+                        help='processes evaluating a generation (the result does not depend '
+                        'on it; default 1)')
     parser.add_argument('--output', default='tuning_report.json',
                         help='JSON report (default: ./tuning_report.json)')
     parser.add_argument('--maxiter', type=int, default=10, help='generations (default 10)')
@@ -781,8 +884,8 @@ def main(argv=None) -> int:
                         help='one start-up, short runs, a tiny budget (tests)')
     args = parser.parse_args(argv)
     maxiter, popsize = (1, 1) if args.quick else (args.maxiter, args.popsize)
-    report = tune(maxiter, popsize, args.seed, args.quick)
-    print_report(report, scenarios(args.quick))
+    report = tune(maxiter, popsize, args.seed, args.quick, args.plant, args.workers)
+    print_report(report, scenarios(args.quick, args.plant))
     with open(args.output, 'w') as f:
         json.dump(report, f, indent=2)
     print('report: %s' % os.path.abspath(args.output))
