@@ -7,8 +7,8 @@ deferred updating, no polish), the IDA-PBC parameters of (13) and the thresholds
 ``controller: auto`` (core/auto_mode.py) on a fixed set of closed-loop runs. It prints a
 before/after table (the start point vs the best found) of every metric per scenario, with the
 targets, and writes a JSON report (default ``./tuning_report.json``). It changes no file: a
-person copies the best point into config/balance.yaml (docs/auto_mode.md has the runs, the one
-the defaults come from, and why earlier best points were not adopted). Deterministic: the same
+person decides whether the best point goes into config/balance.yaml (docs/auto_mode.md has
+the runs and why their best points were not adopted). Deterministic: the same
 arguments give the same report (times aside), whatever ``--workers`` (processes that evaluate
 a generation; a generation is evaluated as a whole). ``--quick``: a tiny budget, short runs.
 
@@ -136,7 +136,7 @@ GROUP_WEIGHTS = {'startup': 1.0, 'velocity_step': 1.0, 'push': 1.0, 'standing': 
 #: standing drift are within reach (rise_estimate; the defaults meet the drift), the 1 deg
 #: overshoot is not, so the search comes as close to it as the others allow instead of trading
 #: them away (a 10 % miss of one costs as much as 2 deg more overshoot from 5 deg). The first
-#: MuJoCo run without the drift's weight (2026-12-04) gave standing's drift up for 1 deg.
+#: MuJoCo run without the drift's weight (2026-12-04) traded standing's drift for overshoot.
 MISS_WEIGHTS = {'rest_time_s': 200.0, 'rest_distance_m': 200.0, 'drift_m': 200.0}
 #: f(r) = max(0, r - 1)^2 + EPS r, r capped at R_CAP.
 EPS = 0.1
