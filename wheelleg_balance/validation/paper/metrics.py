@@ -8,7 +8,7 @@ angle comes back in the unit it went in (rad or deg). Where the two runners samp
 (the end of a settling excursion), the function says which sample it reports.
 """
 import math
-from typing import NamedTuple, Optional
+from typing import NamedTuple, Optional, Tuple
 
 import numpy as np
 
@@ -78,6 +78,33 @@ def settling_time(t: np.ndarray, err: np.ndarray, band: float, since: Optional[f
     if edge == 'outside':
         return float(t[last])
     return float(t[last + 1]) if last + 1 < t.size else None
+
+
+def rest_point(t: np.ndarray, v: np.ndarray, x: np.ndarray, speed: float,
+               since: float = 0.0) -> Tuple[Optional[float], Optional[float]]:
+    """
+    Return (time, distance) at which a run came to rest: |v| below ``speed`` to its end.
+
+    The time is the last sample faster than ``speed`` (settling_time's edge 'outside', from
+    ``since`` [s]; ``since`` itself when none is); the distance is |x there - x[0]|
+    (interpolated). (None, None) when the run is still faster at its end or empty. main_job's
+    start-up and the tuning's MuJoCo runs.
+    """
+    if t.size == 0 or abs(v[-1]) >= speed:
+        return None, None
+    t_rest = settling_time(t, v, speed, since=since, edge='outside')
+    return t_rest, abs(float(np.interp(t_rest, t, x)) - float(x[0]))
+
+
+def extrapolated_stop(t_end: float, travel: float, v: float,
+                      decel: float) -> Tuple[float, float]:
+    """
+    Return (rest time [s], distance [m]) of a run still moving at ``v`` [m/s] at ``t_end``.
+
+    It is taken to stop at ``decel`` [m/s^2] from there: t_end + |v| / a, and the ``travel``
+    so far plus v^2 / (2 a).
+    """
+    return t_end + abs(v) / decel, travel + v * v / (2.0 * decel)
 
 
 def peak_abs(*series: np.ndarray) -> float:

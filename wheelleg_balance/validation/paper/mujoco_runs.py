@@ -22,7 +22,7 @@ from typing import Any, Dict, NamedTuple, Optional, Tuple
 
 import numpy as np
 
-from .metrics import overshoot, settling_time
+from .metrics import extrapolated_stop, overshoot, rest_point
 from ..lockstep import Lockstep
 from ...core.safety import Mode
 
@@ -133,24 +133,20 @@ def startup_figures(tr: Trace, rest_speed: float, decel: float) -> Dict[str, Any
     Return a start-up's overshoot [deg], rest time [s] and rest distance [m], as main_job's.
 
     Overshoot: past the final pitch (the mean over the last second). At rest: from when the
-    true |x_dot| stays below ``rest_speed`` for good (metrics.settling_time, main_job's edge);
+    true |x_dot| stays below ``rest_speed`` for good (metrics.rest_point, as main_job);
     the distance from x at the start of balancing. A run still faster at its end is
     extrapolated to stop at ``decel`` [m/s^2] (as tuning does on model (1)).
     """
     t, deg = tr.t, np.degrees(tr.theta)
     final = float(np.mean(deg[t >= t[-1] - 1.0]))
-    out = {'overshoot_deg': overshoot(deg, final),
-           'peak_speed_mps': float(np.max(np.abs(tr.x_dot)))}
-    if abs(tr.x_dot[-1]) < rest_speed:
-        rest = settling_time(t, tr.x_dot, rest_speed, since=0.0, edge='outside')
-        distance = abs(float(np.interp(rest, t, tr.x)) - float(tr.x[0]))
-        out.update(rest_time_s=rest, rest_distance_m=distance, rest_extrapolated=False)
-    else:
-        v = float(tr.x_dot[-1])
-        out.update(rest_time_s=float(t[-1]) + abs(v) / decel,
-                   rest_distance_m=abs(float(tr.x[-1] - tr.x[0])) + v * v / (2.0 * decel),
-                   rest_extrapolated=True)
-    return out
+    rest, distance = rest_point(t, tr.x_dot, tr.x, rest_speed)
+    extrapolated = rest is None
+    if extrapolated:
+        rest, distance = extrapolated_stop(float(t[-1]), abs(float(tr.x[-1] - tr.x[0])),
+                                           float(tr.x_dot[-1]), decel)
+    return {'overshoot_deg': overshoot(deg, final), 'rest_time_s': rest,
+            'rest_distance_m': distance, 'rest_extrapolated': extrapolated,
+            'peak_speed_mps': float(np.max(np.abs(tr.x_dot)))}
 
 
 def hold_drift(tr: Trace, since: float) -> float:

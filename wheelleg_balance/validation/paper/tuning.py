@@ -104,7 +104,7 @@ import numpy as np
 from scipy.optimize import brentq, differential_evolution, LinearConstraint
 
 from .experiments import overshoot_deg, SENSOR_NOISE
-from .metrics import settling_time
+from .metrics import extrapolated_stop, settling_time
 from .mujoco_runs import hold_drift, Play, run_play, startup_figures
 from .table import DEG, REST_SPEED, STARTUP_TARGETS
 from .. import json_safe
@@ -352,16 +352,17 @@ def scenarios(quick: bool = False, plant: str = 'mujoco') -> Tuple[Run, ...]:
                 2.2 * DEG, STANDING_FROM_S + STANDING_WINDOW_S,
                 (('controller', 'ida_pbc'), ('d_hat0', STANDING_D_HAT0)),
                 STANDING_SWITCH_S)))
-        grid = []
-    for l, d in grid:
-        runs.append(Run('startup/l%.2f/d%+.1f' % (l, d / DEG), 'startup', Scenario(
-            name='startup', controller='auto', duration=duration, theta0=TAIL_ANGLE,
-            imu_offset=d, height=l)))
-    for l, d, seed in (() if quick or plant == 'mujoco' else NOISY):
-        runs.append(Run('startup_noise/l%.2f/d%+.1f/seed%d' % (l, d / DEG, seed), 'startup',
-                        Scenario(name='startup_noise', controller='auto', duration=duration,
-                                 theta0=TAIL_ANGLE, imu_offset=d, height=l,
-                                 noise_std=SENSOR_NOISE, seed=seed)))
+    else:
+        for l, d in grid:
+            runs.append(Run('startup/l%.2f/d%+.1f' % (l, d / DEG), 'startup', Scenario(
+                name='startup', controller='auto', duration=duration, theta0=TAIL_ANGLE,
+                imu_offset=d, height=l)))
+        for l, d, seed in (() if quick else NOISY):
+            runs.append(Run('startup_noise/l%.2f/d%+.1f/seed%d' % (l, d / DEG, seed),
+                            'startup', Scenario(
+                                name='startup_noise', controller='auto', duration=duration,
+                                theta0=TAIL_ANGLE, imu_offset=d, height=l,
+                                noise_std=SENSOR_NOISE, seed=seed)))
     up, down, step_end = (0.5, 1.5, 2.5) if quick else (STEP_UP_S, STEP_DOWN_S, STEP_DURATION)
     runs.append(Run('velocity_step', 'velocity_step', Scenario(
         name='velocity_step', controller='auto', duration=step_end, theta0=0.0,
@@ -462,12 +463,17 @@ def simulate_kicked(sc: Scenario, core: BalanceCore, kicks) -> SimResult:
 
 # --------------------------------------------------------------------------------- metrics
 
+def torque_figures(tau: np.ndarray, dt: float) -> dict:
+    """Return peak_torque_nm and saturated_s of the larger wheel torque magnitude per tick."""
+    at_limit = tau >= TORQUE_LIMIT * (1 - 1e-9)
+    return {'peak_torque_nm': float(np.max(tau)) if tau.size else 0.0,
+            'saturated_s': float(np.count_nonzero(at_limit) * dt)}
+
+
 def _common(r: SimResult, core: BalanceCore) -> dict:
-    tau = np.abs(np.concatenate([r.tau_left, r.tau_right])) if r.t.size else np.zeros(1)
-    at_limit = np.maximum(np.abs(r.tau_left), np.abs(r.tau_right)) >= TORQUE_LIMIT * (1 - 1e-9)
-    return {'fell': bool(r.fell), 'peak_torque_nm': float(np.max(tau)),
-            'saturated_s': float(np.count_nonzero(at_limit) * r.scenario.dt),
-            'switches': core.auto.switches if core.auto is not None else 0}
+    m = torque_figures(np.maximum(np.abs(r.tau_left), np.abs(r.tau_right)), r.scenario.dt)
+    m.update(fell=bool(r.fell), switches=core.auto.switches if core.auto is not None else 0)
+    return m
 
 
 def startup_metrics(r: SimResult) -> dict:
@@ -478,10 +484,9 @@ def startup_metrics(r: SimResult) -> dict:
         distance = abs(float(r.x[i] - r.x[0]))
         extrapolated = False
     else:
-        v = float(r.x_dot[-1])
-        a = EXTRAPOLATION_DECEL
-        rest = float(r.t[-1] + r.scenario.dt) + abs(v) / a
-        distance = abs(float(r.x[-1] - r.x[0])) + v * v / (2.0 * a)
+        rest, distance = extrapolated_stop(float(r.t[-1] + r.scenario.dt),
+                                           abs(float(r.x[-1] - r.x[0])),
+                                           float(r.x_dot[-1]), EXTRAPOLATION_DECEL)
         extrapolated = True
     return {'overshoot_deg': overshoot_deg(r), 'rest_time_s': rest,
             'rest_distance_m': distance, 'rest_extrapolated': extrapolated,
@@ -544,9 +549,8 @@ def node_parameters(c: Candidate) -> Dict[str, float]:
 def run_play_metrics(run: Run, c: Candidate) -> dict:
     """Run a MuJoCo play with a candidate and return its metrics (mujoco_runs.py)."""
     tr = run_play(run.play, node_parameters(c))
-    at_limit = tr.tau >= TORQUE_LIMIT * (1 - 1e-9)
-    m = {'fell': tr.fell, 'peak_torque_nm': float(np.max(tr.tau)),
-         'saturated_s': float(np.count_nonzero(at_limit) * tr.period), 'switches': tr.switches}
+    m = torque_figures(tr.tau, tr.period)
+    m.update(fell=tr.fell, switches=tr.switches)
     if run.group == 'startup':
         m.update(startup_figures(tr, REST_SPEED, EXTRAPOLATION_DECEL))
     else:

@@ -17,7 +17,8 @@ from .params import joy_segments, sim_time
 from .record import Trace
 from .scenarios import Scenario
 from ..metrics import (drift, first_index, first_time, max_deviation, mean_or_none, overshoot,
-                       peak_abs, settling_time, tracking_error, TrackingError, zero_crossings)
+                       peak_abs, rest_point, settling_time, tracking_error, TrackingError,
+                       zero_crossings)
 from ..table import CONTACT_WINDOW_S, D_HAT0, DEG, IMU_OFFSET, Judging, \
     KICK_AFTER_S, KICK_EARLIEST_S, KICK_RECOVERY_BAND_DEG, MAIN_JOB_COMMON, PAPER_YAW_GAIN, \
     REST_SPEED, STANDING_HOLD_S
@@ -108,11 +109,7 @@ def rest(tr: Trace) -> Tuple[Optional[float], Optional[float]]:
     None if it is still faster at the end); the distance from the axle's x at arming.
     """
     after = tr.tg >= 0.0
-    t, v, x = tr.tg[after], tr.g['x_dot'][after], tr.g['x'][after]
-    if t.size == 0 or abs(v[-1]) >= REST_SPEED:
-        return None, None
-    t_rest = settling_time(t, v, REST_SPEED, since=0.0, edge='outside')
-    return t_rest, abs(float(np.interp(t_rest, t, x)) - float(x[0]))
+    return rest_point(tr.tg[after], tr.g['x_dot'][after], tr.g['x'][after], REST_SPEED)
 
 
 def eval_startup(exp: Scenario, tr: Trace, m: dict, crit: List[dict], cmp: dict) -> None:
