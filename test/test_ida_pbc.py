@@ -514,7 +514,7 @@ def test_damping_grows_near_upright_rest_only():
     bell = math.exp(-(0.2 / g.k_v_rate_width) ** 2)
     assert ida_pbc_velocity(0.0, 0.2, 0.1, 0.37, g, GRAV) - ida_pbc_velocity(
         0.0, 0.2, 0.1, 0.37, constant, GRAV) == pytest.approx(-g.k_v_upright * bell * e,
-                                                             rel=1e-9)
+                                                              rel=1e-9)
 
 
 def test_tuned_gains_startup_within_1_deg_and_torque_limit():
