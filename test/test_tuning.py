@@ -93,14 +93,16 @@ def test_a_group_counts_its_worst_run():
     runs = tuning.scenarios()
     startups = [run.name for run in runs if run.group == 'startup']
     assert len(startups) == 3
-    one_bad = _metrics(runs, 0.5)
-    one_bad[startups[1]] = dict(one_bad[startups[1]], overshoot_deg=9.0)
-    all_bad = _metrics(runs, 0.5)
-    for name in startups:
-        all_bad[name] = dict(all_bad[name], overshoot_deg=9.0)
-    all_a_little = _metrics(runs, 0.5)
-    for name in startups:
-        all_a_little[name] = dict(all_a_little[name], overshoot_deg=6.0)
+
+    def overshooting(degrees):
+        m = _metrics(runs, 0.5)
+        for name, deg in zip(startups, degrees):
+            m[name] = dict(m[name], overshoot_deg=deg)
+        return m
+
+    one_bad = overshooting((0.5, 9.0, 0.5))
+    all_bad = overshooting((9.0, 9.0, 9.0))
+    all_a_little = overshooting((6.0, 6.0, 6.0))
     assert tuning.cost(one_bad, runs) == pytest.approx(tuning.cost(all_bad, runs))
     assert tuning.cost(one_bad, runs) > tuning.cost(all_a_little, runs)
 
