@@ -13,11 +13,13 @@ from dataclasses import replace
 import io
 import json
 import math
+from pathlib import Path
 import time
 
 import numpy as np
 import pytest
 
+from wheelleg_balance.core.auto_mode import AutoRules
 from wheelleg_balance.core.margins import REQUIRED_GAIN_MARGIN_DB
 from wheelleg_balance.core.params import IdaPbcGains, TABLE_I_IDA_PBC
 from wheelleg_balance.core.safety import Mode
@@ -27,6 +29,8 @@ from wheelleg_balance.validation.paper import mujoco_runs, tuning
 from wheelleg_balance.validation.paper.experiments import SENSOR_NOISE
 
 DEG = math.pi / 180.0
+#: The run that produced the defaults (issue 12 item 4; docs/auto_mode.md).
+REPORT = Path(__file__).resolve().parents[1] / 'docs' / 'tuning_report.json'
 
 
 def _noisy_runs():
@@ -35,6 +39,19 @@ def _noisy_runs():
         controller='auto', duration=2.0, imu_offset=2.2 * DEG, height=0.37,
         noise_std=SENSOR_NOISE, seed=7))
     return (noisy,) + tuning.scenarios(quick=True)
+
+
+def test_the_defaults_are_the_committed_runs_best_point():
+    # The report is the output of the command it names, from tuning.START; the defaults (and so
+    # config/balance.yaml, test_config) are its best point to the 4 digits the file carries.
+    report = json.loads(REPORT.read_text())
+    assert report['command'] == 'tuning --plant mujoco --maxiter 20 --popsize 5 --seed 12'
+    assert report['start']['params'] == pytest.approx(tuning.START.as_dict(), rel=1e-12)
+    assert report['best']['cost'] < report['start']['cost']
+    assert report['best']['margins']['certified']
+    defaults = tuning.Candidate(IdaPbcGains(), AutoRules()).as_dict()
+    assert defaults == pytest.approx(report['best']['params'], rel=5e-4)
+    assert [v['name'] for v in report['variables']] == [v.name for v in tuning.VARIABLES]
 
 
 def test_the_cost_is_deterministic():

@@ -53,16 +53,16 @@ def brake_step(v: float, deceleration: float, dt: float) -> float:
 class AutoRules:
     """Thresholds of the auto mode (module docstring); hysteresis: enter below leave."""
 
-    enter_angle: float = param(math.radians(7.0), 'auto mode: |theta~ - d_hat| below this '
+    enter_angle: float = param(0.1583, 'auto mode: |theta~ - d_hat| below this '
                                '[rad] ...', 0.001, 0.5)
     enter_rate: float = param(1.0, '... and |theta_dot| below this [rad/s] ...', 0.01, 10.0)
     dwell: float = param(0.1, '... for this long [s]: output regulation holds the robot',
                          0.0, 10.0)
-    leave_angle: float = param(math.radians(12.0), 'auto mode: |theta~ - d_hat| beyond this '
+    leave_angle: float = param(0.2225, 'auto mode: |theta~ - d_hat| beyond this '
                                '[rad] ...', 0.002, 1.5)
     leave_rate: float = param(3.0, '... or |theta_dot| beyond this [rad/s]: IDA-PBC',
                               0.02, 50.0)
-    stop_deceleration: float = param(1.0, 'a robot still moving when output regulation takes '
+    stop_deceleration: float = param(1.231, 'a robot still moving when output regulation takes '
                                      'over (the auto mode or a switch) is braked to x_dot* at '
                                      'this rate (its body leans about atan(a/g)), the last '
                                      '%g s x a of speed more gently [m/s^2]' % STOP_TAIL_S,

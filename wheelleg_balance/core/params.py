@@ -48,6 +48,9 @@ class IdaPbcGains:
     """
     IDA-PBC free parameters: Table I's k, m22_0, k_v, P and the damping's bell near upright.
 
+    The defaults of m22_0, k_v and P are the ``tuning`` command's best point of 2026-12-04
+    (docs/tuning_report.json, docs/auto_mode.md); Table I's values are ``TABLE_I_IDA_PBC``.
+
     k > 0, m22_0 >= 0, k_v > 0, P >= 0 as in Table I; the damping injection is k_v +
     k_v_upright exp(-(theta / k_v_width)^2 - (theta_dot / k_v_rate_width)^2) (core/ida_pbc.py
     ``damping_gain``, docs/ida_pbc.md, section 8); k_v_upright = 0 is Table I's constant k_v
@@ -55,10 +58,10 @@ class IdaPbcGains:
     """
 
     k: float = param(0.015, 'IDA-PBC k > 0 of M_d (Table I)', 1e-6, 10.0)
-    m22_0: float = param(0.04, 'IDA-PBC m22^0 >= 0 of M_d (Table I)', 0.0, 10.0)
-    k_v: float = param(0.05, 'IDA-PBC damping injection k_v > 0 (Table I), away from upright',
-                       1e-6, 10.0)
-    P: float = param(0.2, 'IDA-PBC gain P >= 0 (Table I: 0.2; 0 makes (13) an exact IDA-PBC, '
+    m22_0: float = param(0.0627, 'IDA-PBC m22^0 >= 0 of M_d (Table I: 0.04)', 0.0, 10.0)
+    k_v: float = param(0.05558, 'IDA-PBC damping injection k_v > 0 (Table I: 0.05), away from '
+                       'upright', 1e-6, 10.0)
+    P: float = param(9.338, 'IDA-PBC gain P >= 0 (Table I: 0.2; 0 makes (13) an exact IDA-PBC, '
                      'docs/ida_pbc.md)', 0.0, 100.0)
     k_v_upright: float = param(0.3, 'IDA-PBC damping injection added near upright rest: k_v + '
                                'k_v_upright exp(-(theta / k_v_width)^2 - (theta_dot / '
