@@ -324,7 +324,7 @@ def _hold_force(ctl, l, x_dot, x_dot_ref=0.0, ticks=1):
 def test_the_lean_limit_caps_the_position_and_speed_terms():
     """Stopped at x_dot* = 0, a robot rolling at 0.5 m/s gets at most the force of the lean."""
     sched = GainSchedule(P)
-    shape = HoldShape(lean_limit_growth=0.0)
+    shape = HoldShape(lean_limit_growth=0.0, max_roll_out=0.0)
     l = 0.45
     k0 = sched.gain(l)[0]
     weight = (P.body_mass + P.wheel_mass) * P.gravity
@@ -346,7 +346,7 @@ def test_the_lean_limit_caps_the_position_and_speed_terms():
 def test_near_rest_the_position_hold_gets_the_rest_limit():
     """Below 0.05 m/s at x_dot* = 0 the cap is max_lean_rest's, above it max_lean_hold's."""
     sched = GainSchedule(P)
-    shape = HoldShape(lean_limit_growth=0.0)
+    shape = HoldShape(lean_limit_growth=0.0, max_roll_out=0.0)
     assert shape.max_lean_rest > shape.max_lean_hold > 0.0
     l = 0.45
     gap = sched.gain(l)[0] - (P.body_mass + P.wheel_mass) * P.gravity
@@ -371,7 +371,7 @@ def test_near_rest_the_position_hold_gets_the_rest_limit():
 
 def test_a_robot_that_rolls_on_gets_a_growing_limit_one_that_slows_does_not():
     sched = GainSchedule(P)
-    shape = HoldShape()
+    shape = HoldShape(max_roll_out=0.0)   # the other rule: the next test
     l = 0.45
     gap = sched.gain(l)[0] - (P.body_mass + P.wheel_mass) * P.gravity
     base = gap * math.tan(shape.max_lean_hold)
@@ -395,9 +395,35 @@ def test_a_robot_that_rolls_on_gets_a_growing_limit_one_that_slows_does_not():
     assert abs(u) <= gap * math.tan(shape.max_lean_rest) + 1e-9
 
 
-def test_the_lean_limit_slews_to_the_move_limit_and_back():
+def test_a_rolling_robot_brakes_hard_enough_to_stop_within_max_roll_out():
     sched = GainSchedule(P)
     shape = HoldShape(lean_limit_growth=0.0)
+    assert shape.max_roll_out > 0.0
+    l = 0.45
+    gap = sched.gain(l)[0] - (P.body_mass + P.wheel_mass) * P.gravity
+    ctl = OutputRegulationController(P, sched, shape=shape)
+    ctl.reset(ControlInput(l=l, x_dot=0.6))   # taken over rolling: the rolling limit at once
+    # Rolling on at 0.6 m/s for 1 s (0.6 m of max_roll_out used): the cap is the force of the
+    # lean that decelerates at v^2 / (2 s_left), the cart-pole's g tan(lean).
+    ticks = 500
+    u = _hold_force(ctl, l, 0.6, ticks=ticks)
+    s_left = shape.max_roll_out - 0.6 * ticks * DT
+    lean = math.atan(0.6 ** 2 / (2.0 * P.gravity * s_left))
+    assert lean > shape.max_lean_hold   # the bound is what acts here
+    assert u == pytest.approx(gap * math.tan(lean), rel=1e-6)
+    # Rolled past max_roll_out: the cap is the move limit's (slewed there at lean_limit_rate).
+    u = _hold_force(ctl, l, 0.6, ticks=1000 + int(shape.max_roll_out / 0.6 / DT))
+    assert u == pytest.approx(min(gap * math.tan(shape.max_lean_move), sched.gain(l)[3] * 0.6),
+                              rel=1e-9)
+    # Slow enough to stop within what is left: only the rolling limit.
+    ctl.reset(ControlInput(l=l, x_dot=0.1))
+    assert _hold_force(ctl, l, 0.1) == pytest.approx(gap * math.tan(shape.max_lean_hold),
+                                                     rel=1e-9)
+
+
+def test_the_lean_limit_slews_to_the_move_limit_and_back():
+    sched = GainSchedule(P)
+    shape = HoldShape(lean_limit_growth=0.0, max_roll_out=0.0)
     l = 0.45
     k0 = sched.gain(l)[0]
     gap = (k0 - (P.body_mass + P.wheel_mass) * P.gravity)
@@ -456,3 +482,15 @@ def test_per_tick_calls_are_cheap(schedule):
         per_call = min(timeit.repeat(call, number=n, repeat=3)) / n
         print('%s: %.2f us' % (name, per_call * 1e6))
         assert per_call < 25e-6, name
+
+
+def test_a_live_parameter_set_reaches_the_running_hold():
+    # ros2 param set of a hold parameter is live (docs/interface.md): the controller must see it.
+    from wheelleg_balance.core.balance_loop import BalanceLoop
+    from wheelleg_balance.core.config import BalanceConfig
+    loop = BalanceLoop(BalanceConfig())
+    hold = loop.core.controllers['output_regulation']
+    assert hold.shape.max_roll_out == HoldShape().max_roll_out
+    loop.apply_parameters({'output_regulation.max_roll_out': 0.5,
+                           'output_regulation.max_lean_hold': 0.01})
+    assert (hold.shape.max_roll_out, hold.shape.max_lean_hold) == (0.5, 0.01)

@@ -482,6 +482,8 @@ class BalanceLoop:
             self.core.select(new.control.controller)
         if new.ida_pbc != old.ida_pbc:
             self.core.set_ida_pbc_gains(new.ida_pbc)
+        if new.output_regulation != old.output_regulation:
+            self.core.set_hold_shape(new.output_regulation)
         if new.control.height != old.control.height:
             self._height_target = new.control.height
         self._configure_live(new)

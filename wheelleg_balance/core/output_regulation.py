@@ -43,7 +43,8 @@ balance_node runs it by default differs from (9) as printed in three ways, each 
   the hold sees the robot roll on slower to stop than half of what the limit's lean brakes, its
   limit grows at ``lean_limit_growth``, so a bias the
   limit cannot overcome (d_hat off while rolling, from friction model (1) lacks) does not keep
-  it rolling;
+  it rolling; and it brakes at least at v^2 / (2 s_left), so a kick stops within
+  ``max_roll_out`` of where the roll began (s_left: what is left of it);
 - while x_dot* != 0 the position is not held (x_ref follows x): the robot tracks the speed and
   holds the spot where the command returns to zero, rather than making up the lag of the
   acceleration with an overshoot in speed.
@@ -68,6 +69,9 @@ C_OUT = np.array([[0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
 MAX_POSITION_ERROR = 0.3
 #: Above this speed error the robot counts as rolling (HoldShape.lean_limit_growth) [m/s].
 ROLLING_SPEED = 0.05
+#: max_roll_out's braking is judged on at least this much distance left [m] (the lean it
+#: asks for stays finite; it is capped at max_lean_move anyway).
+MIN_ROLL_LEFT = 0.01
 #: Values of ``output_regulation.feedback``.
 FEEDBACKS = ('measured', 'observer')
 
@@ -96,6 +100,10 @@ class HoldShape:
                                      'grows at this rate [rad/s] (up to max_lean_move), so a '
                                      'bias (d_hat off while rolling: friction the model lacks) '
                                      'cannot keep it rolling', 0.0, 10.0)
+    max_roll_out: float = param(2.0, 'output regulation, x_dot* = 0: a robot set rolling (a '
+                                'kick) brakes at least hard enough to stop within this '
+                                'distance of where the roll began [m] (the limit grows to '
+                                'atan(v^2 / (2 g s_left))); 0: no such bound', 0.0, 100.0)
 
 
 def regulator_solution(l: float, p: RobotParams) -> tuple:
@@ -240,8 +248,9 @@ class OutputRegulationController:
         self._ref = _PositionReference(dt, max_position_error)
         self._weight = (p.body_mass + p.wheel_mass) * p.gravity   # (M + m) g [N]
         self._lean = shape.max_lean_hold
-        # _roll_extra's state: speed when the rolling began [m/s], time since [s], extra [rad].
-        self._roll_v0 = self._roll_t = self._extra = 0.0
+        # _roll_extra's state: speed when the rolling began [m/s], time [s] and distance [m]
+        # since, extra lean [rad].
+        self._roll_v0 = self._roll_t = self._roll_s = self._extra = 0.0
 
     def k_d(self, l: float) -> float:
         """Return the gain on d_hat at height l [m]: Gamma - k_x(l) Pi [N/rad]."""
@@ -253,7 +262,7 @@ class OutputRegulationController:
         measured = self.shape.feedback == 'measured'
         self._ref.x_ref = float(s.x if measured else s.xi_hat[2])
         self._lean = self._lean_target(s.x_dot_ref, s.x_dot - s.x_dot_ref)
-        self._roll_v0 = self._roll_t = self._extra = 0.0
+        self._roll_v0 = self._roll_t = self._roll_s = self._extra = 0.0
 
     def _lean_target(self, x_dot_ref: float, speed_error: float) -> float:
         sh = self.shape
@@ -283,20 +292,31 @@ class OutputRegulationController:
 
     def _roll_extra(self, x_dot_ref: float, speed: float, lean: float) -> float:
         """
-        Return the extra lean [rad] the hold allows a robot that does not slow down.
+        Return the extra lean [rad] the hold allows a rolling robot, beyond ``lean``.
 
-        Braking at a steady lean ``lean`` slows the robot at g tan(lean); one rolling on at less
-        than half that (a bias the limit cannot overcome) gets lean_limit_growth per second more.
+        Two rules, the larger wins. Braking at a steady lean ``lean`` slows the robot at
+        g tan(lean); one rolling on at less than half that (a bias the limit cannot overcome)
+        gets lean_limit_growth per second more. And a robot at ``speed`` with s_left of
+        max_roll_out still to go must brake at speed^2 / (2 s_left), which the lean
+        atan(speed^2 / (2 g s_left)) does (the cart-pole (1) decelerates at g tan(lean)):
+        a kick cannot send it rolling for metres at the gentle limit.
         """
         if x_dot_ref != 0.0 or speed <= ROLLING_SPEED:
-            self._roll_v0 = self._roll_t = self._extra = 0.0
+            self._roll_v0 = self._roll_t = self._roll_s = self._extra = 0.0
             return 0.0
+        dt = self._ref.dt
         if speed > self._roll_v0:   # a new disturbance: judge the slowing from here
             self._roll_v0, self._roll_t = speed, 0.0
         if speed > self._roll_v0 - 0.5 * self.p.gravity * math.tan(lean) * self._roll_t:
-            self._extra += self.shape.lean_limit_growth * self._ref.dt
-        self._roll_t += self._ref.dt
-        return self._extra
+            self._extra += self.shape.lean_limit_growth * dt
+        self._roll_t += dt
+        self._roll_s += speed * dt
+        extra = self._extra
+        if self.shape.max_roll_out > 0.0:
+            s_left = max(self.shape.max_roll_out - self._roll_s, MIN_ROLL_LEFT)
+            extra = max(extra, math.atan(speed * speed / (2.0 * self.p.gravity * s_left))
+                        - lean)
+        return extra
 
     def compute(self, s: ControlInput) -> float:
         """Return the force u [N]."""

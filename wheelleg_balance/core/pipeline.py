@@ -211,6 +211,11 @@ class BalanceCore:
         if self._auto is not None:
             self._auto.rules = rules
 
+    def set_hold_shape(self, shape: HoldShape) -> None:
+        """Replace output regulation's hold shape (lean limits, roll-out); from the next tick."""
+        self.config.hold = shape
+        self.controllers['output_regulation'].shape = shape
+
     def set_ida_pbc_gains(self, gains: IdaPbcGains) -> None:
         """Replace the IDA-PBC parameters (k, m22_0, k_v, P); applies from the next tick."""
         self.config.ida_pbc = gains
