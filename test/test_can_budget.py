@@ -44,5 +44,8 @@ def test_control_loop_bounds_its_catch_up_by_the_configured_queue():
     robot = {'legs.driven': True}
     assert limit(from_flat(BalanceConfig, robot), False) == MAX_CATCH_UP
     short = dict(robot, **{'can.tx_queue_len': 10})
-    assert limit(from_flat(BalanceConfig, short), False) == 0    # six frames a tick
+    # The hips in turns (legs.command_divider 2): four frames a tick, two missed ticks fit.
+    assert limit(from_flat(BalanceConfig, short), False) == 1
+    every_tick = dict(short, **{'legs.command_divider': 1})
+    assert limit(from_flat(BalanceConfig, every_tick), False) == 0    # six frames a tick
     assert limit(from_flat(BalanceConfig, short), True) == 4     # the hips on their own bus

@@ -153,6 +153,13 @@ def test_changes_are_checked_and_leave_the_original_alone():
     assert check(with_changes(DEFAULTS, {'max_wheel_torque': 25.0})) != []
     assert check(with_changes(DEFAULTS, {'can.right_motor_id': 1})) != []
     assert check(with_changes(DEFAULTS, {'left_leg_front_joint': 'a'})) != []
+    # Lockstep with the hips in turns on a bus of their own: sim_node could not tell when a
+    # tick's hip commands are in (sim/robot_motors.py commanded).
+    lockstep = {'legs.driven': True, 'clock_source': 'imu_stamp'}
+    assert check(with_changes(DEFAULTS, lockstep)) == []
+    split = dict(lockstep, **{'legs.can.channel': 'legs'})
+    assert any('command_divider' in p for p in check(with_changes(DEFAULTS, split)))
+    assert check(with_changes(DEFAULTS, dict(split, **{'legs.command_divider': 1}))) == []
 
 
 def test_flat_and_nested_names_round_trip():

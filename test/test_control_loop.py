@@ -16,13 +16,14 @@ import uuid
 
 import can
 from can.interfaces.virtual import VirtualBus
+import numpy as np
 import pytest
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import Imu, JointState
 
-from wheelleg_balance.core.deadline import DeadlineLoop
+from wheelleg_balance.core.deadline import DeadlineLoop, window_stats
 from wheelleg_balance.core.motors import MotorSet
 from wheelleg_balance.core.protocols.mit import MitProtocol
 from wheelleg_balance.nodes.balance_node import BalanceNode
@@ -110,6 +111,19 @@ def test_remapping_the_node_remaps_its_sensor_topics(make_node, context):
     _publish_sensors(context, node.get_namespace(), imu_topic='imu_remapped', seconds=5.0,
                      until=lambda: _fresh(node, 'imu_age_s', 0.1))
     assert _fresh(node, 'imu_age_s')
+
+
+def test_the_state_and_the_joints_cross_the_link_in_one_message():
+    from wheelleg_balance.core.balance_loop import STATE_FIELDS
+    from wheelleg_balance.nodes import control_link as L
+    ros_end, loop_end = (L.Link(s) for s in L.socket_pair())
+    n = len(STATE_FIELDS) + len(L.ODOM_FIELDS) + 2
+    values = [0.5 * k for k in range(n)]
+    joints = [float(k) for k in range(30)]   # six motors and four knees: 3 x 10 values
+    assert loop_end.send_state(values, joints) and loop_end.send_state(values)
+    received = list(ros_end.receive())
+    assert received == [(L.STATE, (tuple(values), tuple(joints))),
+                        (L.STATE, (tuple(values), ()))]
 
 
 # ----------------------------------------------------------------- CanIo.poll, MotorSet
@@ -283,6 +297,16 @@ def test_late_ticks_are_those_past_late_after(late_after):
     threshold = PERIOD_NS // 4 if late_after is None else PERIOD_NS
     assert loop.late == sum(x > threshold for x in lateness) > 0
     assert loop.stats()['late_share'] == loop.late / 60
+
+
+@pytest.mark.parametrize('n', [1, 2, 3, 100, 1023, 1024])
+def test_window_stats_are_numpys_mean_p99_and_max(n):
+    values = np.random.default_rng(n).exponential(0.0005, n)
+    stats = window_stats('compute', values)
+    assert stats['compute_mean'] == pytest.approx(np.mean(values), rel=1e-12)
+    assert stats['compute_p99'] == pytest.approx(np.percentile(values, 99), rel=1e-12)
+    assert stats['compute_max'] == np.max(values)
+    assert all(np.isnan(v) for v in window_stats('period', []).values())
 
 
 def test_an_exception_in_the_tick_is_counted_and_the_loop_goes_on():

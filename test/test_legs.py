@@ -12,8 +12,8 @@ import pytest
 
 from wheelleg_balance.core.kinematics import FiveBarLeg
 from wheelleg_balance.core.legs import (
-    HeightShaper, HipHoming, HipMotors, HomingConfig, LegController, LegGains, RollLeveller,
-    split_heights)
+    HeightShaper, HipHoming, HipMotors, HomingConfig, LEFT_LEG, LegController, LegGains,
+    RIGHT_LEG, RollLeveller, split_heights)
 from wheelleg_balance.core.protocols.mit import MitProtocol
 from wheelleg_balance.sim.motor_emulator import MitMotorEmulator
 
@@ -137,6 +137,20 @@ def test_commands_follow_the_kinematics_in_each_motors_frame(l_left, l_right, v_
         assert tau == pytest.approx(LEG.static_torques(*q, 54.0 * math.cos(pitch),
                                                        54.0 * math.sin(pitch)), abs=1e-9)
         assert all(c.kp == 50.0 and c.kd == 2.0 for c in cmds)
+
+
+def test_commands_of_one_leg_are_that_legs_half_of_both():
+    """legs= picks the legs (the tick commands them in turns: legs.command_divider)."""
+    ctl = LegController(LEG, MOTORS, weight_share=54.0)
+    both = ctl.commands(0.45, 0.60, 0.1, -0.1, pitch=0.05)
+    left = ctl.commands(0.45, 0.60, 0.1, -0.1, pitch=0.05, legs=(LEFT_LEG,))
+    right = ctl.commands(0.45, 0.60, 0.1, -0.1, pitch=0.05, legs=(RIGHT_LEG,))
+    assert left == both[:2] and right == both[2:]
+    assert [c.motor_id for c in right] == list(MOTORS.motor_ids[2:])
+    assert ctl.commands(0.45, 0.60, legs=()) == []
+    # A leg with a bad height goes to damping alone, whichever legs are asked for.
+    damped = ctl.commands(math.nan, 0.60, legs=(LEFT_LEG,))
+    assert [c.kp for c in damped] == [0.0, 0.0] and [c.motor_id for c in damped] == [11, 12]
 
 
 def test_commands_drive_motors_to_the_height():

@@ -81,6 +81,33 @@ def test_cmd_height_is_tracked_clamped_and_refused_when_not_finite():
     assert ls.mode == int(Mode.BALANCING)
 
 
+@pytest.mark.parametrize('divider', [2, 1])
+def test_the_hips_are_commanded_in_turns_and_track_the_height_either_way(divider):
+    """
+    The hips are commanded in turns (legs.command_divider) and the legs track the height.
+
+    Divider 2 (the default): two hip frames per tick, the legs taking turns, each hip at
+    250 Hz (half the CAN load of the hips at 500 Hz); 1: all four every tick. Either way the
+    legs track a height change and the body stays upright.
+    """
+    ls = standing({'legs.command_divider': divider})
+    assert ls.cfg.legs.command_divider == divider
+    ls.command_height(0.60)
+    per_tick = []
+    for _ in range(int(round(4.0 / ls.period))):
+        ls.tick()
+        per_tick.append(tuple(f.arbitration_id for f in ls.loop.last_result.leg_frames))
+    left, right = tuple(ls.cfg.legs.motor_ids[:2]), tuple(ls.cfg.legs.motor_ids[2:])
+    if divider == 2:
+        assert all(len(ids) == 2 for ids in per_tick)
+        assert all({a, b} == {left, right} for a, b in zip(per_tick, per_tick[1:]))
+    else:
+        assert all(ids == left + right for ids in per_tick)
+    assert all(abs(v - 0.60) < 0.01 for v in window(ls, 'l_true', 1.0))
+    assert max(abs(v) for v in window(ls, 'theta_true', 4.0)) < math.radians(5.0)
+    assert ls.mode == int(Mode.BALANCING)
+
+
 def test_the_height_changes_within_the_rate_limit():
     ls = standing()
     ls.command_height(P.height_max)

@@ -340,3 +340,41 @@ def test_robot_motors_route_frames_by_bus_and_id_and_evaluate_every_step():
     assert abs(sim.leg_angles()[2] - q[2]) > 0.05
     with pytest.raises(ValueError):
         RobotMotors(RobotSim(), default_specs())       # hip motors need legs='motors'
+
+
+@pytest.mark.parametrize('hip_bus', [0, 1])
+def test_lockstep_waits_for_the_frames_that_close_a_tick(hip_bus):
+    """
+    The lockstep waits for the frames that close a tick (RobotMotors.commanded).
+
+    On one bus the wheels close a tick, whichever hips it commanded (in turns,
+    legs.command_divider; they are sent before the wheels); hips on their own bus are waited
+    for each; with no wheel in motor mode, every enabled motor is.
+    """
+    from wheelleg_balance.core.protocols.mit import MitProtocol
+    from wheelleg_balance.sim.robot_motors import default_specs, RobotMotors
+    mit = MitProtocol()
+    sim = RobotSim(legs='motors', height=0.45)
+    motors = RobotMotors(sim, default_specs(hip_bus=hip_bus))
+
+    def send(ids, bus):
+        for i in ids:
+            motors.handle(mit.command_frame(i, 0.0, 0.0, 0.0, 1.0, 0.0), bus=bus)
+
+    for i in (3, 4, 5, 6):   # a hip enabled alone (bringup): it is waited for
+        motors.handle(mit.enable_frames([i])[0], bus=hip_bus)
+    marks = motors.command_marks()
+    assert not motors.commanded(marks)
+    send((3, 4, 5, 6), hip_bus)
+    assert motors.commanded(marks)
+    for i in (1, 2):
+        motors.handle(mit.enable_frames([i])[0], bus=0)
+    marks = motors.command_marks()
+    send((3, 4), hip_bus)            # the left leg's turn
+    assert not motors.commanded(marks)
+    send((1,), 0)
+    assert not motors.commanded(marks)
+    send((2,), 0)                    # the wheels close the tick on one bus
+    assert motors.commanded(marks) is (hip_bus == 0)
+    send((5, 6), hip_bus)            # on a bus of their own every hip is waited for
+    assert motors.commanded(marks)

@@ -188,6 +188,7 @@ def graph(context):
     from can.interfaces.virtual import VirtualBus
     from rclpy.node import Node
 
+    from wheelleg_balance.core.balance_loop import joint_states_used
     from wheelleg_balance.nodes.balance_node import BalanceNode
     from wheelleg_balance.nodes.teleop_node import TeleopNode
     from wheelleg_balance.validation.faults.rig import wait_for
@@ -207,10 +208,12 @@ def graph(context):
         except Exception:  # noqa: B902 -- not discovered yet (NodeNameNonExistentError)
             return None
     names = ('balance_node', 'balance_node_sensors', 'teleop_node')
+    # imu, and joint_states_in only where the tick reads it (not with the defaults' motors).
+    intake_subs = 1 + joint_states_used(node.config)
     try:
         # The intake is another participant: wait until discovery shows its subscriptions.
-        assert wait_for(lambda: all(endpoints(n) for n in names) and
-                        len(endpoints('balance_node_sensors')['sub']) == 2, 20.0, step=0.1)
+        assert wait_for(lambda: all(endpoints(n) for n in names) and len(
+            endpoints('balance_node_sensors')['sub']) == intake_subs, 20.0, step=0.1)
         yield {n: endpoints(n) for n in names}
     finally:
         node.shutdown()

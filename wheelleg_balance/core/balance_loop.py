@@ -43,8 +43,8 @@ import numpy as np
 from .config import BalanceConfig
 from .estimation import WheelOdometry
 from .kinematics import FiveBarLeg
-from .legs import (HeightShaper, HipHoming, HipMotors, HomingConfig, LegController, LegGains,
-                   LegState, RollLeveller, split_heights)
+from .legs import (HeightShaper, HipHoming, HipMotors, HomingConfig, LEFT_LEG, LegController,
+                   LegGains, LegState, RIGHT_LEG, RollLeveller, split_heights)
 from .lift import LiftDetector
 from .motor_health import derate, error_reason
 from .motors import MotorSet
@@ -291,6 +291,12 @@ def joint_state_reader(cfg: BalanceConfig) -> JointStateReader:
                             five_bar(cfg))
 
 
+def joint_states_used(cfg: BalanceConfig) -> bool:
+    """Tell whether the tick reads joint_states_in: wheels from another driver, or hip angles."""
+    return cfg.wheel_state.wheel_state_source == 'joint_states' \
+        or bool(joint_state_reader(cfg).legs)
+
+
 def joint_names(cfg: BalanceConfig) -> List[str]:
     """Return the joints balance_node publishes: wheels, and with driven legs hips and knees."""
     j = cfg.joints
@@ -325,6 +331,7 @@ class Legs:
         self.leveller = RollLeveller(lc.roll_kp, lc.roll_ki, lc.roll_kd, lc.max_roll_dl)
         self.levelling = lc.roll_kp > 0.0 or lc.roll_ki > 0.0
         self.divider = lc.command_divider
+        self._phases = ((LEFT_LEG, 0), (RIGHT_LEG, self.divider // 2))
         self.height_min, self.height_max = p.height_min, p.height_max
         self.state: Optional[LegState] = None
         self.raised_since: Optional[float] = None
@@ -358,6 +365,17 @@ class Legs:
         """Return the oldest of the hips' newest reply times (None until each replied)."""
         times = [m.last_reply for m in self.motors.motors]
         return None if any(t is None for t in times) else min(times)
+
+    def due(self, tick: int) -> Tuple[int, ...]:
+        """
+        Return the legs whose hips are commanded in this tick while balancing.
+
+        Each leg every ``legs.command_divider``-th tick; with a divider of 2 or more the two
+        legs take turns, so every tick carries the same number of frames (the right leg half a
+        cycle after the left: 2 hip frames per tick at 250 Hz, not 4 and 0).
+        """
+        phase = tick % self.divider
+        return tuple(leg for leg, at in self._phases if at == phase)
 
     def frames(self, commands) -> List[Frame]:
         """MIT frames of impedance commands."""
@@ -852,11 +870,11 @@ class BalanceLoop:
                 if legs.levelling else 0.0
             l_left, l_right = split_heights(l_ref, dl, self.p.height_min,
                                             self.p.height_max)
-            load = 1.0
-            if self._ticks % legs.divider == 0:
+            due = legs.due(self._ticks)
+            if due:
                 theta = s.theta - self._d_hat
                 r.leg_frames += legs.frames(legs.controller.commands(
-                    l_left, l_right, l_dot, l_dot, pitch=theta, load=load))
+                    l_left, l_right, l_dot, l_dot, pitch=theta, legs=due))
             if not legs.state.valid:
                 self.supervisor.report_fault(now, LEGS, 'legs: ' + '; '.join(
                     legs.state.problems))

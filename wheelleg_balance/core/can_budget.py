@@ -8,8 +8,10 @@ adds SRR and 18 identifier bits (64 + 8n). Bit stuffing (a complemented bit afte
 ones) covers SOF to the CRC, 34 + 8n bits for a standard frame, and adds at most
 floor((34 + 8n - 1) / 4) bits. ``frame_bits`` returns that worst case, so a load figure is an
 upper bound: an MIT command (8 bytes) takes at most 135 bit times, a reply (6 bytes) 115, and six
-of each per 2 ms tick 750 kbit/s, 75 % of a 1 Mbit/s bus.
+of each per 2 ms tick 750 kbit/s, 75 % of a 1 Mbit/s bus (four of each, the hips at 250 Hz by
+``legs.command_divider``: 50 %).
 """
+from functools import lru_cache
 from typing import Iterable, Optional
 
 #: Frame bits outside the data field, interframe space included (standard, extended id).
@@ -18,6 +20,7 @@ _OVERHEAD_BITS = {False: 47, True: 67}
 _STUFFED_BITS = {False: 34, True: 54}
 
 
+@lru_cache(maxsize=None)   # counted for every frame sent and received: a few dozen keys
 def frame_bits(dlc: int, extended: bool = False) -> int:
     """Return the bit times [bit] a classical data frame of ``dlc`` bytes takes at most."""
     n = 8 * max(0, min(8, int(dlc)))

@@ -371,8 +371,9 @@ class LegsConfig:
                                    'damping (0: pure damping)', 0.0, 1.0)
     channel: str = param('', "CAN channel of the hips' bus ('' = the wheels' bus)",
                          read_only=RO, name='legs.can.channel')
-    command_divider: int = param(1, 'send the hip commands every n-th tick (CAN budget: 2 = '
-                                 '250 Hz)', 1, 10, read_only=RO)
+    command_divider: int = param(2, 'command each leg every n-th tick while balancing, the '
+                                 'legs taking turns (CAN budget: 2 = 250 Hz, two hip frames '
+                                 'per tick; 1 = all four at 500 Hz)', 1, 10, read_only=RO)
     max_height_rate: float = param(0.1, 'limit of the rate of the height reference [m/s]',
                                    0.01, 1.0)
     max_height_accel: float = param(0.2, 'limit of the acceleration of the height reference '
@@ -502,6 +503,12 @@ class BalanceConfig:
             if any(self.joints.leg_names):
                 out.append('hip joint names (left_leg_front_joint ...) are for legs that '
                            'another driver reports; with legs.motor_ids the hips are ours')
+            if self.loop.clock_source == 'imu_stamp' and self.legs.channel \
+                    and self.legs.channel != self.can.channel \
+                    and self.legs.command_divider != 1:
+                out.append('clock_source imu_stamp with the hips on their own bus needs '
+                           'legs.command_divider 1 (sim_node waits for every hip every tick '
+                           'there; on one bus the wheels close a tick)')
         return out
 
 

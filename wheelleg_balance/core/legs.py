@@ -44,6 +44,9 @@ from .rate_limiter import limit_rate
 
 #: Hip order of every 4-sequence here.
 HIP_NAMES = ('left_front', 'left_rear', 'right_front', 'right_rear')
+#: The legs, by the index of their front hip in HIP_NAMES.
+LEFT_LEG, RIGHT_LEG = 0, 2
+BOTH_LEGS = (LEFT_LEG, RIGHT_LEG)
 #: A reply as the legs need it: (position [rad], velocity [rad/s], torque [N m]), motor frame.
 Reply = Optional[Tuple[float, float, float]]
 
@@ -329,23 +332,24 @@ class LegController:
     # ---- commands ---------------------------------------------------------------------------
 
     def commands(self, l_left: float, l_right: float, l_dot_left: float = 0.0,
-                 l_dot_right: float = 0.0, pitch: float = 0.0,
-                 load: float = 1.0) -> List[MitCommand]:
+                 l_dot_right: float = 0.0, pitch: float = 0.0, load: float = 1.0,
+                 legs: Sequence[int] = BOTH_LEGS) -> List[MitCommand]:
         """
-        Impedance commands of the four hips for the legs' heights [m] and rates [m/s].
+        Impedance commands of the hips for the legs' heights [m] and rates [m/s].
 
         Heights are clamped to the legs' reach; pitch [rad] (theta, forward lean positive)
         turns the weight share into the body frame: f_l = f cos(theta), f_x = f sin(theta).
         load: the share of the body's weight the legs carry (1 balancing; less resting on the
         tail, which carries the rest). A non-finite input falls back to the damping mode for
-        that leg.
+        that leg. legs: which legs to command (LEFT_LEG, RIGHT_LEG), two commands each.
         """
         g, m = self.gains, self.motors
         f = self.weight_share * load
         theta = pitch if _finite(pitch) else 0.0
         f_l, f_x = f * math.cos(theta), f * math.sin(theta)
         out: List[MitCommand] = []
-        for side, l, l_dot in ((0, l_left, l_dot_left), (2, l_right, l_dot_right)):
+        for side in legs:
+            l, l_dot = (l_left, l_dot_left) if side == LEFT_LEG else (l_right, l_dot_right)
             if not (_finite(l) and _finite(l_dot)):
                 out.extend(self._damping(side))
                 continue

@@ -238,10 +238,11 @@ class BalanceNode(Node):
 
     def _on_message(self, tag: bytes, payload) -> None:
         if tag == L.STATE:
-            self._loop_mode = int(payload[_MODE])
-            self._publish_state(payload)
-        elif tag == L.JOINT_VALUES:
-            self._publish_joints(payload)
+            values, joints = payload
+            self._loop_mode = int(values[_MODE])
+            self._publish_state(values)
+            if joints:
+                self._publish_joints(joints)
         elif tag == L.STATUS:
             self._status = payload
             self._loop_mode = int(payload['mode_index'])

@@ -84,9 +84,12 @@ class CanIo:
         with self._lock:
             if self._closed:
                 return 0
+            # One receipt time for the poll: the frames waited in the socket until now.
+            now = self._clock()
+            recv = self.bus.recv
             try:
                 while n < max_frames:
-                    msg = self.bus.recv(timeout=0.0)
+                    msg = recv(timeout=0.0)
                     if msg is None:
                         break
                     n += 1
@@ -94,8 +97,8 @@ class CanIo:
                     if msg.is_error_frame or msg.is_remote_frame:
                         continue
                     self.bits += frame_bits(msg.dlc, msg.is_extended_id)
-                    into.append((self._clock(), Frame(msg.arbitration_id, bytes(msg.data),
-                                                      msg.is_extended_id)))
+                    into.append((now, Frame(msg.arbitration_id, bytes(msg.data),
+                                            msg.is_extended_id)))
             except (can.CanError, OSError, ValueError) as exc:
                 self.rx_errors += 1
                 self.last_rx_error = '%s: %s' % (type(exc).__name__, exc)

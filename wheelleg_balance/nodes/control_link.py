@@ -34,8 +34,7 @@ PARAMS = b'P'       # {name: value}
 STOP = b'S'         # shut down: zero torque, exit motor mode, end
 CONFLICTS = b'K'    # {input: why} inputs refused for their publishers (nodes/input_guard.py)
 # Tags: control loop -> ROS side.
-STATE = b's'        # ~/state values, the odometry, the tick's time
-JOINT_VALUES = b'j'  # positions, velocities, efforts of the published joints
+STATE = b's'        # ~/state values, the odometry, the tick's time (and the joints' values)
 ARM_REPLY = b'a'    # (request id, success, message)
 STATUS = b'd'       # the loop's status dict (core/balance_loop.BalanceLoop.status + timing)
 EVENT = b'e'        # (level, text) to log
@@ -46,7 +45,8 @@ _JOINTS = struct.Struct('<d?dd?d')
 _CMD = struct.Struct('<3d')
 _CMD_HEIGHT = struct.Struct('<2d')
 #: STATE payload: the STATE_FIELDS, then odom x, y, yaw, x_dot, yaw_rate, then the tick's
-#: monotonic time [s] and the publication flags (nodes/control_process.py).
+#: monotonic time [s] and the publication flags (nodes/control_process.py); then, when the
+#: joint_states are due, the published joints' positions, velocities and efforts.
 ODOM_FIELDS = ('x', 'y', 'yaw', 'x_dot', 'yaw_rate')
 _STATE = struct.Struct('<%dd' % (len(STATE_FIELDS) + len(ODOM_FIELDS) + 2))
 
@@ -116,13 +116,15 @@ class Link:
         """Send the newest cmd_height."""
         return self._send(CMD_HEIGHT + _CMD_HEIGHT.pack(*c))
 
-    def send_joint_values(self, values) -> bool:
-        """Send positions + velocities + efforts of the published joints (floats)."""
-        return self._send(JOINT_VALUES + struct.pack('<%dd' % len(values), *values))
+    def send_state(self, values, joints=()) -> bool:
+        """
+        Send the state: STATE_FIELDS values, the odometry, the tick time, the flags.
 
-    def send_state(self, values) -> bool:
-        """Send the state: STATE_FIELDS values, the odometry, the tick time."""
-        return self._send(STATE + _STATE.pack(*values))
+        joints: positions + velocities + efforts of the published joints (floats), in the same
+        message (one wake-up of the ROS side, not two); received as the pair (state, joints).
+        """
+        return self._send(STATE + _STATE.pack(*values)
+                          + struct.pack('<%dd' % len(joints), *joints))
 
     def send_object(self, tag: bytes, obj: Any) -> bool:
         """Send a rare message with a pickled payload (arm, params, status, events)."""
@@ -132,7 +134,8 @@ class Link:
         """
         Yield (tag, payload) for each message waiting, at most ``limit``, without blocking.
 
-        Payloads: ImuSample, JointSample, CmdVel, the state tuple, or the unpickled object.
+        Payloads: ImuSample, JointSample, CmdVel, the state and joint values (a pair of
+        tuples), or the unpickled object.
         An end-of-file or a socket error sets ``closed`` and ends the iteration.
         """
         for _ in range(limit):
@@ -172,8 +175,8 @@ _DECODERS: dict = {
     JOINTS: lambda p: JointSample(*_JOINTS.unpack(p)),
     CMD_VEL: lambda p: CmdVel(*_CMD.unpack(p)),
     CMD_HEIGHT: lambda p: CmdHeight(*_CMD_HEIGHT.unpack(p)),
-    JOINT_VALUES: lambda p: struct.unpack('<%dd' % (len(p) // 8), p),
-    STATE: _STATE.unpack,
+    STATE: lambda p: (_STATE.unpack_from(p), struct.unpack_from(
+        '<%dd' % ((len(p) - _STATE.size) // 8), p, _STATE.size)),
 }
 
 

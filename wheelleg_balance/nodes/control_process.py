@@ -122,7 +122,7 @@ class ControlRunner:
         """Return the ticks a catch-up may serve: MAX_CATCH_UP, fewer with a short TX queue."""
         per_tick = 2 if cfg.can.protocol == 'mit' else 1   # DJI: one frame for both wheels
         if cfg.legs.driven and not legs_own_bus:
-            per_tick += 4
+            per_tick += 4 if cfg.legs.command_divider == 1 else 2   # the legs take turns
         return max_catch_up(cfg.can.tx_queue_len, per_tick, MAX_CATCH_UP)
 
     # ------------------------------------------------------------------------- lifecycle
@@ -163,12 +163,23 @@ class ControlRunner:
             self.leg_can.close()
 
     def _send(self, frames, leg_frames) -> Optional[str]:
-        """Send the wheels' frames, then the hips' (on their own bus if they have one)."""
-        error = self.can.send(frames)
-        if leg_frames:
-            leg_error = (self.leg_can or self.can).send(leg_frames)
-            error = error or leg_error
-        return error
+        """
+        Send the wheels' frames, then the hips' (on their own bus if they have one).
+
+        On IMU stamps (a simulator in lockstep) the hips' go first: the wheels, commanded every
+        tick, then close the tick for sim_node (sim/robot_motors.py ``commanded``), whichever
+        hips the tick commanded.
+        """
+        if not leg_frames:
+            return self.can.send(frames)
+        leg_can = self.leg_can or self.can
+        if self.on_stamps:
+            leg_error = leg_can.send(leg_frames)
+            error = self.can.send(frames)
+        else:
+            error = self.can.send(frames)
+            leg_error = leg_can.send(leg_frames)
+        return error or leg_error
 
     def _apply_realtime(self) -> None:
         lc = self.cfg.loop
@@ -312,11 +323,12 @@ class ControlRunner:
             flags |= PUBLISH_ODOM
         if flags:
             o = result.odom
+            joints = ()
+            if flags & PUBLISH_STATE:
+                pos, vel, eff = self.loop.joint_values(now)
+                joints = pos + vel + eff
             self.link.send_state(result.state.values() + [o.x, o.y, o.yaw, o.x_dot,
-                                                          o.yaw_rate, now, flags])
-        if flags & PUBLISH_STATE:
-            pos, vel, eff = self.loop.joint_values(now)
-            self.link.send_joint_values(pos + vel + eff)
+                                                          o.yaw_rate, now, flags], joints)
 
     def _on_stall(self, lateness: float) -> None:
         self.link.send_object(L.EVENT, ('warn', 'control loop: a tick came %.1f ms late'

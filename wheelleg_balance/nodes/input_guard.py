@@ -13,7 +13,7 @@ command conflict drops that command until the intruder is gone.
 """
 from typing import Callable, Dict, Optional, Sequence, Tuple
 
-from ..core.balance_loop import joint_state_reader
+from ..core.balance_loop import joint_states_used
 from ..core.config import BalanceConfig
 from ..core.schema import to_flat
 
@@ -83,8 +83,7 @@ class InputGuard:
 
     def __init__(self, node, cfg: BalanceConfig, on_change: Callable[[Dict[str, str]], None]):
         used = {'imu', 'cmd_vel', 'cmd_height'}
-        if cfg.wheel_state.wheel_state_source == 'joint_states' \
-                or joint_state_reader(cfg).legs:
+        if joint_states_used(cfg):
             used.add('joint_states')
         self.node = node
         self.topics = {key: node.resolve_topic_name(topic)

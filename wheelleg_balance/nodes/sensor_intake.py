@@ -3,18 +3,20 @@ balance_node's sensor intake: imu and joint_states to the control loop, from a b
 
 The intake runs in a process of its own that does nothing else.
 
-The intake is a node with two subscriptions and nothing more: no publisher, no service (not
-even the parameter, logger or type-description services), no rosout, no executor. Its main
-thread blocks in an rcl wait set on the two subscriptions (the GIL released), takes each
-message the moment it arrives, reduces it to a small sample (core/sensors.py) stamped with its
-monotonic receipt time, and sends it straight to the control process over their own socket
-pair (nodes/control_link.py). A process of its own because what stalls an rclpy process when
-other participants come and go (docs/benchmarks.md) is the executor, service and publisher
-side of rclpy: balance_node's ROS side may stall, the samples do not (and if the intake ever
-did, the samples would go stale and the loop fault, never freeze). Its participant is
-UDP-only (nodes/dds.py): Fast DDS's shared-memory transport made even this subscription-only
-participant's discovery wait 0.33 s for other processes, and the samples with it. With
-``realtime_priority`` set, the intake runs SCHED_FIFO one below the loop.
+The intake is a node with subscriptions and nothing more (imu; joint_states_in only where the
+tick reads it: wheel speeds from another driver, or undriven legs' hip angles): no publisher, no
+service (not even the parameter, logger or type-description services), no rosout, no executor.
+Its main thread blocks in an rcl wait set on the subscriptions (the GIL released), takes each
+message the moment it arrives (the IMU's serialized: nodes/imu_cdr.py), reduces it to a small
+sample (core/sensors.py) stamped with its monotonic receipt time, and sends it straight to the
+control process over their own socket pair (nodes/control_link.py). A process of its own
+because what stalls an rclpy process when other participants come and go (docs/benchmarks.md)
+is the executor, service and publisher side of rclpy: balance_node's ROS side may stall, the
+samples do not (and if the intake ever did, the samples would go stale and the loop fault,
+never freeze). Its participant is UDP-only (nodes/dds.py): Fast DDS's shared-memory
+transport made even this subscription-only participant's discovery wait 0.33 s for other
+processes, and the samples with it. With ``realtime_priority`` set, the intake runs
+SCHED_FIFO one below the loop.
 
 balance_node starts it (``python -m wheelleg_balance.nodes.sensor_intake --fd N ...``) with
 the topic names it has resolved, so its remappings apply. The intake ends when the control
@@ -22,16 +24,19 @@ process goes away (the link closes), when balance_node dies (the kernel sends it
 PR_SET_PDEATHSIG) and on SIGINT/SIGTERM/SIGHUP/SIGQUIT.
 """
 import argparse
+import contextlib
 import ctypes
 import math
 import signal
 import sys
 import time
+from typing import Optional
 
 from .control_link import Link, READY
 from .dds import apply_udp_only
+from .imu_cdr import imu_sample_from_cdr
 from ..core import realtime
-from ..core.balance_loop import joint_state_reader
+from ..core.balance_loop import joint_state_reader, joint_states_used
 from ..core.config import BalanceConfig
 from ..core.schema import from_flat
 from ..core.sensors import ImuSample, JointStateReader
@@ -71,16 +76,18 @@ class SensorIntake:
     The intake's node and loop (see the module docstring); ``run`` blocks until ``stop``.
 
     context: an initialized rclpy Context of this process; name, namespace: of balance_node
-    (the intake's node is ``<name>_sensors``); imu_topic, joint_topic: resolved names.
+    (the intake's node is ``<name>_sensors``); imu_topic, joint_topic: resolved names
+    (joint_topic None: the tick reads no joint_states_in, nothing subscribes it).
     """
 
     def __init__(self, context, link: Link, reader: JointStateReader, name: str,
-                 namespace: str, imu_topic: str, joint_topic: str):
+                 namespace: str, imu_topic: str, joint_topic: Optional[str]):
         from rclpy.event_handler import SubscriptionEventCallbacks
         from rclpy.guard_condition import GuardCondition
         from rclpy.node import Node
         from rclpy.parameter import Parameter
         from rclpy.qos import qos_profile_sensor_data
+        from rclpy.serialization import deserialize_message
         from sensor_msgs.msg import Imu, JointState
 
         self.context = context
@@ -94,7 +101,10 @@ class SensorIntake:
         self._subs = [self.node.create_subscription(msg_type, topic, lambda _: None,
                                                     qos_profile_sensor_data,
                                                     event_callbacks=no_events)
-                      for msg_type, topic in ((Imu, imu_topic), (JointState, joint_topic))]
+                      for msg_type, topic in ((Imu, imu_topic), (JointState, joint_topic))
+                      if topic is not None]
+        self._imu_type = Imu
+        self._deserialize = deserialize_message
         self._wake = GuardCondition(None, None, context=context)
         self._stopped = False
         self.taken = 0
@@ -115,44 +125,59 @@ class SensorIntake:
         extra = ' (%s)' % self.realtime if self.realtime else ''
         self.link.send_object(READY, 'sensor intake %s%s' % (
             self.node.get_fully_qualified_name(), extra))
-        imu_sub, joint_sub = self._subs
         context = self.context
         timeout_ns = int(WAIT_TIMEOUT * 1e9)
-        while not self._stopped and not self.link.closed and context.ok():
-            try:
-                with imu_sub.handle, joint_sub.handle, self._wake.handle, context.handle:
-                    wait_set = _rclpy.WaitSet(2, 1, 0, 0, 0, 0, context.handle)
+        handles = [sub.handle for sub in self._subs]
+        imu, joints = handles[0], handles[1] if len(handles) > 1 else None
+        wake = self._wake.handle
+        # One wait set for the whole run, its entities held for as long (what rclpy's executor
+        # builds anew at every wake-up was a sixth of the intake's time at 500 Hz).
+        with contextlib.ExitStack() as held:
+            for handle in handles + [wake, context.handle]:
+                held.enter_context(handle)
+            wait_set = _rclpy.WaitSet(len(handles), 1, 0, 0, 0, 0, context.handle)
+            while not self._stopped and not self.link.closed:
+                try:
                     wait_set.clear_entities()
-                    wait_set.add_subscription(imu_sub.handle)
-                    wait_set.add_subscription(joint_sub.handle)
-                    wait_set.add_guard_condition(self._wake.handle)
+                    for handle in handles:
+                        wait_set.add_subscription(handle)
+                    wait_set.add_guard_condition(wake)
                     wait_set.wait(timeout_ns)
-                    ready = wait_set.get_ready_entities('subscription')
-                    if imu_sub.handle.pointer in ready:
-                        self._take(imu_sub, self._forward_imu)
-                    if joint_sub.handle.pointer in ready:
-                        self._take(joint_sub, self._forward_joints)
-            except Exception:  # noqa: B902 -- shutting down, or a bad message: go on
-                if self._stopped or not context.ok():
-                    return
-                self.errors += 1
+                    if wait_set.is_ready('subscription', 0):
+                        self._take_imu(imu)
+                    if joints is not None and wait_set.is_ready('subscription', 1):
+                        self._take_joints(joints, self._subs[1].msg_type)
+                except Exception:  # noqa: B902 -- shutting down, or a bad message: go on
+                    if self._stopped or not context.ok():
+                        return
+                    self.errors += 1
 
-    def _take(self, sub, forward) -> None:
-        handle, msg_type = sub.handle, sub.msg_type
+    def _take_imu(self, handle) -> None:
+        # Serialized (nodes/imu_cdr.py): the tick needs 13 numbers of the message.
+        for _ in range(MAX_TAKES):
+            taken = handle.take_message(self._imu_type, True)
+            if taken is None:
+                return
+            self.taken += 1
+            t = time.monotonic()
+            # The intake's node runs on ROS time without sim time: its clock is the system
+            # clock, read here without building a Time.
+            clock = time.time()
+            sample = imu_sample_from_cdr(taken[0], t, clock)
+            if sample is None:   # not plain CDR: rclpy's deserializer
+                sample = imu_sample(self._deserialize(taken[0], self._imu_type), t, clock)
+            self.link.send_imu(sample)
+
+    def _take_joints(self, handle, msg_type) -> None:
         for _ in range(MAX_TAKES):
             taken = handle.take_message(msg_type, False)
             if taken is None:
                 return
             self.taken += 1
-            forward(taken[0], time.monotonic())
-
-    def _forward_imu(self, msg, t: float) -> None:
-        self.link.send_imu(imu_sample(msg, t, 1e-9 * self.node.get_clock().now().nanoseconds))
-
-    def _forward_joints(self, msg, t: float) -> None:
-        sample = self.reader.reduce(t, msg.name, msg.position, msg.velocity)
-        if sample is not None:
-            self.link.send_joints(sample)
+            msg = taken[0]
+            sample = self.reader.reduce(time.monotonic(), msg.name, msg.position, msg.velocity)
+            if sample is not None:
+                self.link.send_joints(sample)
 
     def destroy(self) -> None:
         """Destroy the node."""
@@ -220,7 +245,7 @@ def main(argv=None) -> int:
     ros_args = ['--ros-args', '--enclave', args.enclave] if args.enclave else []
     rclpy.init(args=ros_args, context=context, signal_handler_options=SignalHandlerOptions.NO)
     intake = SensorIntake(context, link, joint_state_reader(cfg), args.name, args.namespace,
-                          args.imu, args.joint_states)
+                          args.imu, args.joint_states if joint_states_used(cfg) else None)
     intake.realtime = priority
 
     def handler(signum, frame):

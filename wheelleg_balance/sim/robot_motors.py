@@ -93,6 +93,7 @@ class RobotMotors:
             self.emulators[spec.joint] = e
             self._by_key[(spec.bus, spec.motor_id)] = (JOINTS.index(spec.joint), e)
         self._motors = [(JOINTS.index(s.joint), self.emulators[s.joint]) for s in self.specs]
+        self._bus = {s.joint: s.bus for s in self.specs}
         self._hips_driven = sim.legs == 'motors'
         self.hand = Hand(len(JOINTS))
         self._hand_on = False
@@ -133,12 +134,21 @@ class RobotMotors:
 
     def commanded(self, marks: Dict[str, int]) -> bool:
         """
-        Return True once every motor in motor mode has had a frame since ``marks`` was taken.
+        Return True once the tick's commands are in (sim_node's lockstep), counted from marks.
 
-        A motor that entered motor mode since counts from its enter frame; one that left it is
-        no longer waited for (sim_node's lockstep: the physics steps on the tick's commands).
+        balance_node commands both wheels every tick while any motor is in motor mode, the
+        hips in turns while balancing (``legs.command_divider``), and in lockstep it sends a
+        tick's hip frames before its wheel frames (nodes/control_process.py); one bus delivers
+        in order. So on the wheels' bus the wheels in motor mode close the tick; a motor on
+        another bus (hips on their own) must have had a frame itself; with no wheel in motor
+        mode (a hip enabled alone), every motor in motor mode. A motor that entered motor mode
+        since counts from its enter frame; one that left it is no longer waited for.
         """
-        return all(e.frames > marks.get(j, -1) for j, e in self.emulators.items() if e.enabled)
+        enabled = [(j, e) for j, e in self.emulators.items() if e.enabled]
+        wheels = [(j, e) for j, e in enabled if j in WHEEL_JOINTS]
+        waited = wheels + [(j, e) for j, e in enabled if self._bus[j] != 0] if wheels \
+            else enabled
+        return all(e.frames > marks.get(j, -1) for j, e in waited)
 
     def torques(self) -> List[float]:
         """Evaluate every motor now: the six joint torques [N m] (JOINTS order; 0 without one)."""

@@ -177,10 +177,10 @@ class MitProtocol(MotorProtocol):
         Accepted on a standard ID equal to master_id or to the motor ID in byte 0; anything
         else (other lengths, extended IDs, other IDs) gives None.
         """
-        motor_id = self.reply_motor_id(frame)
+        data = frame_bytes(frame)
+        motor_id = self._reply_id(frame, data)
         if motor_id is None:
             return None
-        data = frame_bytes(frame)
         p = (data[1] << 8) | data[2]
         v = (data[3] << 4) | (data[4] >> 4)
         t = ((data[4] & 0xF) << 8) | data[5]
@@ -194,7 +194,9 @@ class MitProtocol(MotorProtocol):
 
     def reply_motor_id(self, frame: Frame) -> Optional[int]:
         """Return byte 0 of what decode_feedback would accept as a reply, else None."""
-        data = frame_bytes(frame)
+        return self._reply_id(frame, frame_bytes(frame))
+
+    def _reply_id(self, frame: Frame, data: Optional[bytes]) -> Optional[int]:
         if data is None or len(data) not in (6, 8):
             return None
         motor_id = data[0]

@@ -8,13 +8,15 @@ benchmark: does the 2 ms balance loop hold in Python? Everything measured in one
 4. node: balance_node (its ROS shell, control process and sensor intake) with imu at 500 Hz
    from another process and its six motors emulated on a udp_multicast CAN bus; its frames,
    CPU, compute time and latency. ``--before-tree DIR`` measures the node of another source
-   tree (a checkout of an earlier commit) the same way in the same run ('node_before').
+   tree (a checkout of an earlier commit) the same way in the same run ('node_before');
+   ``--node-param NAME:=VALUE`` sets a parameter of this tree's node.
 
 Prints a table and writes a JSON report; the targets are reported pass/fail, they never change
 the exit code (1 only when a part could not run). Methods and figures: docs/benchmarks.md.
 
     ros2 run wheelleg_balance benchmark [--duration 60] [--output output/benchmark.json]
         [--quick] [--parts core,floor,baseline,node] [--profile] [--before-tree DIR]
+        [--node-param NAME:=VALUE]
 """
 import argparse
 import datetime
@@ -90,9 +92,10 @@ def run_node(args, env: Dict[str, str], workdir: str,
         floors.append(subprocess.Popen(
             _loop_command('floor', duration, out, args.realtime_priority), env=env))
 
+    extra = [a for p in args.node_param for a in ('-p', p)] if nut.tree is None else []
     node = bench_node.run(args.duration, workdir, env, *_can_address(),
                           controller=args.controller, realtime_priority=args.realtime_priority,
-                          on_window=attach, nut=nut, tag=tag)
+                          extra_node_args=extra, on_window=attach, nut=nut, tag=tag)
     for proc in floors:
         if proc.wait(timeout=120) == 0:
             node['floor_during_node'] = loop_result(out)
@@ -311,9 +314,15 @@ def parse_args(argv=None):
     parser.add_argument('--before-tree', default=None, metavar='DIR',
                         help='also measure the node of this source tree (e.g. a git worktree of '
                         'an earlier commit), just before this one: node_before in the report')
+    parser.add_argument('--node-param', action='append', default=[], metavar='NAME:=VALUE',
+                        help="a parameter of this tree's balance_node (repeatable; not for "
+                        'the node of --before-tree), e.g. legs.command_divider:=1')
     parser.add_argument('--workdir', default=None,
                         help='keep the raw recordings (npz, logs) here instead of a temp dir')
     args = parser.parse_args(argv)
+    bad = [p for p in args.node_param if ':=' not in p]
+    if bad:
+        parser.error('--node-param takes NAME:=VALUE, not %s' % ', '.join(bad))
     parts = [p.strip() for p in args.parts.split(',') if p.strip()]
     unknown = set(parts) - set(PARTS)
     if unknown:
@@ -343,7 +352,7 @@ def main(argv=None) -> int:
                      'parts': args.parts, 'controller': args.controller,
                      'realtime_priority': args.realtime_priority, 'period_ms': 2.0,
                      'late_threshold_ms': 1.0, 'ros_domain_id': int(env['ROS_DOMAIN_ID']),
-                     'before_tree': args.before_tree},
+                     'before_tree': args.before_tree, 'node_params': args.node_param},
         'errors': {},
     }
     steps = {
