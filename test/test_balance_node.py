@@ -395,10 +395,12 @@ def test_armed_node_sends_encoded_torque_frames_at_500_hz(rig):
     assert int(values['motor_1_replies']) > 400 and int(values['tx_errors']) == 0
     # The bus load: two commands (8 bytes) and two replies (6 or 8) a tick at <= 500 Hz, with
     # worst-case stuffing (core/can_budget.py), over the 0.1 s between status messages. The
-    # udp_multicast bus loops the node's own commands back to it: they count twice here (on
-    # SocketCAN a socket does not receive its own frames).
-    low, high = (500 * 2 * (2 * frame_bits(8) + frame_bits(n)) / 1e4 for n in (6, 8))
+    # udp_multicast bus hands the node its own commands back (SocketCAN does not): they are
+    # dropped as echoes, not counted twice, so the load is what the wire would carry.
+    low, high = (500 * 2 * (frame_bits(8) + frame_bits(n)) / 1e4 for n in (6, 8))
     assert 0.7 * low <= float(values['bus_load_pct']) <= 1.1 * high, values['bus_load_pct']
+    assert int(values['rx_echoes']) > 400   # each command came back once: not a reply
+    assert int(values['rx_frames']) < 1.5 * int(values['rx_replies'])
     loop, _ = rig.robot.diagnostic_values('balance_node: control loop')
     # Never faster than the 2 ms grid (no catch-up); slower only by the skipped deadlines.
     assert 1.95 < float(loop['period_mean_ms']) < 3.0

@@ -240,9 +240,12 @@ class BalanceNode(Node):
         if tag == L.STATE:
             values, joints = payload
             self._loop_mode = int(values[_MODE])
-            self._publish_state(values)
+            if not self.context.ok() or self._closing.is_set():
+                return
+            stamp = self.get_clock().now().to_msg()
+            self._publish_state(values, stamp)
             if joints:
-                self._publish_joints(joints)
+                self._publish_joints(joints, stamp)
         elif tag == L.STATUS:
             self._status = payload
             self._loop_mode = int(payload['mode_index'])
@@ -271,14 +274,12 @@ class BalanceNode(Node):
             if not self._ready.is_set():
                 self._control_error = text
 
-    def _publish_state(self, values) -> None:
-        if not self.context.ok() or self._closing.is_set():
-            return
+    def _publish_state(self, values, stamp) -> None:
+        # values: array('d') (nodes/control_link.py), which float64[] fields take unchecked.
         flags = int(values[-1])
         if flags & PUBLISH_STATE:
-            self._state_msg.data = list(values[:_N_STATE])
+            self._state_msg.data = values[:_N_STATE]
             self._state_pub.publish(self._state_msg)
-        stamp = self.get_clock().now().to_msg()
         x, y, yaw, x_dot, yaw_rate = values[_N_STATE:_N_STATE + 5]
         if flags & PUBLISH_STATE:
             self._tf.publish(stamp, values, (x, y, yaw))
@@ -291,13 +292,10 @@ class BalanceNode(Node):
             msg.twist.twist.linear.x, msg.twist.twist.angular.z = x_dot, yaw_rate
             self._odom_pub.publish(msg)
 
-    def _publish_joints(self, values) -> None:
-        if not self.context.ok() or self._closing.is_set():
-            return
+    def _publish_joints(self, values, stamp) -> None:
         msg, n = self._joint_msg, len(self._joint_msg.name)
-        msg.header.stamp = self.get_clock().now().to_msg()
-        msg.position, msg.velocity, msg.effort = (list(values[0:n]), list(values[n:2 * n]),
-                                                  list(values[2 * n:3 * n]))
+        msg.header.stamp = stamp
+        msg.position, msg.velocity, msg.effort = values[0:n], values[n:2 * n], values[2 * n:]
         self._joint_pub.publish(msg)
 
     # ------------------------------------------------------------------- to the control loop

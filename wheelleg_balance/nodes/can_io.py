@@ -10,6 +10,12 @@ Replies are read by the control loop too: ``poll()`` at the start of each tick d
 them. No receive thread: a python-can Notifier woke 1000-2000 times a second and competed with
 the control thread for the GIL (docs/benchmarks.md). A reply is thus known to one tick (2 ms),
 well inside ``motor_timeout``.
+
+A raw SocketCAN socket does not receive its own frames (``CAN_RAW_RECV_OWN_MSGS`` is off by
+default), and python-can's ``receive_own_messages`` is off; its udp_multicast test bus hands
+them back all the same (every member of the group, the sender too, gets each datagram). Such an
+echo of a frame sent since the previous poll is dropped here, before it is decoded, counted or
+added to the bus load: on the test bus four of a tick's eight received frames were echoes.
 """
 import threading
 import time
@@ -50,9 +56,10 @@ class CanIo:
     """
     Send frames and collect received ones on one bus.
 
-    Counters: tx_frames, tx_errors, rx_frames, rx_errors; last_tx_error / last_rx_error hold
-    the newest error text; bits: the bit times of the data frames sent and received
-    (core/can_budget.py, worst-case stuffing), for the bus load.
+    Counters: tx_frames, tx_errors, rx_frames, rx_errors, rx_echoes (own frames the bus handed
+    back, dropped); last_tx_error / last_rx_error hold the newest error text; bits: the bit
+    times of the data frames sent and received (core/can_budget.py, worst-case stuffing), for
+    the bus load.
     """
 
     def __init__(self, bus: can.BusABC, send_timeout: float = 0.0005,
@@ -64,7 +71,10 @@ class CanIo:
         self.tx_errors = 0
         self.rx_frames = 0
         self.rx_errors = 0
+        self.rx_echoes = 0
         self.bits = 0
+        #: (arbitration ID, data) of the frames sent since the last poll -> how many.
+        self._sent = {}
         self.last_tx_error = ''
         self.last_rx_error = ''
         self._lock = threading.Lock()
@@ -87,18 +97,27 @@ class CanIo:
             # One receipt time for the poll: the frames waited in the socket until now.
             now = self._clock()
             recv = self.bus.recv
+            sent, self._sent = self._sent, {}
             try:
                 while n < max_frames:
                     msg = recv(timeout=0.0)
                     if msg is None:
                         break
                     n += 1
-                    self.rx_frames += 1
                     if msg.is_error_frame or msg.is_remote_frame:
+                        self.rx_frames += 1
                         continue
+                    data = bytes(msg.data)
+                    if sent and not msg.is_extended_id:
+                        key = (msg.arbitration_id, data)
+                        copies = sent.get(key)
+                        if copies:   # our own frame, handed back by the bus
+                            sent[key] = copies - 1
+                            self.rx_echoes += 1
+                            continue
+                    self.rx_frames += 1
                     self.bits += frame_bits(msg.dlc, msg.is_extended_id)
-                    into.append((now, Frame(msg.arbitration_id, bytes(msg.data),
-                                            msg.is_extended_id)))
+                    into.append((now, Frame(msg.arbitration_id, data, msg.is_extended_id)))
             except (can.CanError, OSError, ValueError) as exc:
                 self.rx_errors += 1
                 self.last_rx_error = '%s: %s' % (type(exc).__name__, exc)
@@ -120,6 +139,9 @@ class CanIo:
                     return self.last_tx_error
                 self.tx_frames += 1
                 self.bits += frame_bits(len(f.data), f.is_extended_id)
+                if not f.is_extended_id:   # the frames the control loop sends
+                    key = (f.arbitration_id, bytes(f.data))
+                    self._sent[key] = self._sent.get(key, 0) + 1
             return None
 
     def counters(self) -> dict:
@@ -127,6 +149,7 @@ class CanIo:
         return {'tx_frames': self.tx_frames, 'tx_errors': self.tx_errors,
                 'last_tx_error': self.last_tx_error, 'rx_frames': self.rx_frames,
                 'rx_errors': self.rx_errors, 'last_rx_error': self.last_rx_error,
+                'rx_echoes': self.rx_echoes,
                 'bits': self.bits}
 
     def close(self) -> None:

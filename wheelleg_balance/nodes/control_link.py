@@ -14,10 +14,12 @@ changes, status for /diagnostics, log lines) are pickled. Both ends are non-bloc
 that finds the socket full drops the message and counts it (``dropped``), since waiting would
 let a stalled reader stall the writer.
 """
+from array import array
 import os
 import pickle
 import socket
 import struct
+import sys
 from typing import Any, Callable, Iterator, Optional, Tuple
 
 from ..core.balance_loop import CmdHeight, CmdVel, STATE_FIELDS
@@ -135,7 +137,7 @@ class Link:
         Yield (tag, payload) for each message waiting, at most ``limit``, without blocking.
 
         Payloads: ImuSample, JointSample, CmdVel, the state and joint values (a pair of
-        tuples), or the unpickled object.
+        array('d')), or the unpickled object.
         An end-of-file or a socket error sets ``closed`` and ends the iteration.
         """
         for _ in range(limit):
@@ -175,9 +177,16 @@ _DECODERS: dict = {
     JOINTS: lambda p: JointSample(*_JOINTS.unpack(p)),
     CMD_VEL: lambda p: CmdVel(*_CMD.unpack(p)),
     CMD_HEIGHT: lambda p: CmdHeight(*_CMD_HEIGHT.unpack(p)),
-    STATE: lambda p: (_STATE.unpack_from(p), struct.unpack_from(
-        '<%dd' % ((len(p) - _STATE.size) // 8), p, _STATE.size)),
+    STATE: lambda p: (_doubles(p[:_STATE.size]), _doubles(p[_STATE.size:])),
 }
+
+
+def _doubles(data: bytes) -> array:
+    """Little-endian float64s as an array('d'): what ROS messages' float64[] take unchecked."""
+    out = array('d', data)
+    if sys.byteorder != 'little':
+        out.byteswap()
+    return out
 
 
 def decode(data: bytes) -> Tuple[bytes, Any]:

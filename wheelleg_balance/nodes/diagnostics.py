@@ -97,6 +97,7 @@ def can_status(st: Dict[str, Any], hardware_id: str) -> DiagnosticStatus:
               'tx_errors': io['tx_errors'], 'last_tx_error': io['last_tx_error'],
               'rx_frames': io['rx_frames'], 'rx_replies': st['rx_replies'],
               'rx_errors': io['rx_errors'], 'last_rx_error': io['last_rx_error'],
+              'rx_echoes': io.get('rx_echoes', 0),
               'bus_load_pct': _pct(io.get('load_pct')),
               'max_catch_up': st.get('max_catch_up', math.nan)}
     legs = st.get('leg_can')
