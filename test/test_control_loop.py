@@ -433,3 +433,23 @@ def test_the_udp_multicast_test_bus_never_leaves_the_machine():
     finally:
         a.shutdown()
         b.shutdown()
+
+
+def test_on_the_udp_multicast_test_bus_sends_never_wait():
+    """No socket timeout mode there (a poll before every recvmsg and sendto); socketcan keeps it."""
+    from wheelleg_balance.nodes.can_io import open_bus
+    group, port = '239.74.251.%d' % (1 + os.getpid() % 200), 46000 + os.getpid() % 2000
+    a, b = open_bus('udp_multicast', group, port), open_bus('udp_multicast', group, port)
+    io, peer = CanIo(a, send_timeout=0.0005), CanIo(b, send_timeout=0.0005)
+    try:
+        assert io.send_timeout == 0.0
+        assert io.send(MitProtocol().torque_frames({1: 0.5})) is None
+        assert a._multicast._socket.gettimeout() == 0.0   # non-blocking, not timeout mode
+        assert wait_for(lambda: peer.poll([]) == 1, 2.0)
+        assert io.poll([]) == 1 and io.rx_echoes == 1     # its own frame, handed back
+    finally:
+        io.close()
+        peer.close()
+    virtual = CanIo(VirtualBus(channel='wlb-%s' % uuid.uuid4().hex), send_timeout=0.0005)
+    assert virtual.send_timeout == 0.0005
+    virtual.close()

@@ -22,6 +22,7 @@ import time
 from typing import Callable, Iterable, List, Optional, Tuple
 
 import can
+from can.interfaces.udp_multicast import UdpMulticastBus
 
 from ..core.can_budget import frame_bits
 from ..core.protocols.base import Frame
@@ -65,7 +66,11 @@ class CanIo:
     def __init__(self, bus: can.BusABC, send_timeout: float = 0.0005,
                  clock: Callable[[], float] = time.monotonic):
         self.bus = bus
-        self.send_timeout = send_timeout
+        # The udp_multicast test bus sends without waiting: for a send timeout python-can puts
+        # its one socket in timeout mode, and CPython then polls before every recvmsg and
+        # sendto (three system calls per reply instead of two); a full socket buffer is a
+        # send error at once, as a full SocketCAN TX queue is.
+        self.send_timeout = 0.0 if isinstance(bus, UdpMulticastBus) else send_timeout
         self._clock = clock
         self.tx_frames = 0
         self.tx_errors = 0

@@ -46,9 +46,9 @@ through Fast DDS's shared memory could hold the loop thread 0.33 s or more while
 processes come and go (docs/benchmarks.md, "The 0.33 s stall").
 
 ``lockstep`` (with balance_node's ``clock_source: imu_stamp``): imu is stamped with the
-simulated time, and each tick first waits (at most ``lockstep_timeout``, wall clock) until
-every motor in motor mode has had a frame since the previous publish: the commands balance_node
-computed from that sample. The loop never catches up in bursts: when the wait or the CPU makes
+simulated time, and each tick first waits (at most ``lockstep_timeout``, wall clock) until the
+commands balance_node computed from that sample are in (sim/robot_motors.py ``commanded``: the
+wheels' frames close a tick, the hips' are sent before them). The loop never catches up in bursts: when the wait or the CPU makes
 it late it simply runs slower than real time (``real_time_factor``). The closed loop is then
 the same on a loaded machine as on an idle one (docs/simulation.md).
 """
