@@ -436,7 +436,7 @@ def test_the_udp_multicast_test_bus_never_leaves_the_machine():
 
 
 def test_on_the_udp_multicast_test_bus_sends_never_wait():
-    """No socket timeout mode there (a poll before every recvmsg and sendto); socketcan keeps it."""
+    """No socket timeout mode there (a poll before each recvmsg and sendto); socketcan keeps it."""
     from wheelleg_balance.nodes.can_io import open_bus
     group, port = '239.74.251.%d' % (1 + os.getpid() % 200), 46000 + os.getpid() % 2000
     a, b = open_bus('udp_multicast', group, port), open_bus('udp_multicast', group, port)

@@ -48,9 +48,10 @@ processes come and go (docs/benchmarks.md, "The 0.33 s stall").
 ``lockstep`` (with balance_node's ``clock_source: imu_stamp``): imu is stamped with the
 simulated time, and each tick first waits (at most ``lockstep_timeout``, wall clock) until the
 commands balance_node computed from that sample are in (sim/robot_motors.py ``commanded``: the
-wheels' frames close a tick, the hips' are sent before them). The loop never catches up in bursts: when the wait or the CPU makes
-it late it simply runs slower than real time (``real_time_factor``). The closed loop is then
-the same on a loaded machine as on an idle one (docs/simulation.md).
+wheels' frames close a tick, the hips' are sent before them). The loop never catches up in
+bursts: when the wait or the CPU makes it late it simply runs slower than real time
+(``real_time_factor``). The closed loop is then the same on a loaded machine as on an idle one
+(docs/simulation.md).
 """
 import sys
 import threading
