@@ -186,6 +186,21 @@ def test_poll_drops_the_echoes_of_its_own_frames_once_each():
     finally:
         io.close()
         peer.shutdown()
+    # A bus that makes no echoes (SocketCAN's default): another node's copy of a frame just
+    # sent is a received frame like any other.
+    channel = 'wlb-%s' % uuid.uuid4().hex
+    peer = VirtualBus(channel=channel)
+    io = CanIo(VirtualBus(channel=channel))
+    try:
+        assert io.send([command]) is None
+        peer.send(can.Message(arbitration_id=command.arbitration_id, data=command.data,
+                              is_extended_id=False))
+        frames = []
+        assert io.poll(frames) == 1 and [f for _, f in frames] == [command]
+        assert (io.rx_echoes, io.rx_frames) == (0, 1)
+    finally:
+        io.close()
+        peer.shutdown()
 
 
 def test_poll_reads_a_bounded_number_of_frames_per_tick():

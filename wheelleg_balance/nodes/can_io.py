@@ -28,6 +28,16 @@ from ..core.can_budget import frame_bits
 from ..core.protocols.base import Frame
 
 
+def hands_back_own_frames(bus: can.BusABC) -> bool:
+    """
+    Tell whether the bus gives the sender its own frames back (echoes; see the module docstring).
+
+    udp_multicast always does; python-can's virtual bus when asked to (receive_own_messages);
+    SocketCAN's raw sockets do not by default.
+    """
+    return isinstance(bus, UdpMulticastBus) or bool(getattr(bus, 'receive_own_messages', False))
+
+
 #: IP_MULTICAST_TTL of the udp_multicast test bus: 0, this host only.
 UDP_HOP_LIMIT = 0
 
@@ -78,6 +88,8 @@ class CanIo:
         self.rx_errors = 0
         self.rx_echoes = 0
         self.bits = 0
+        # Echoes are looked for only where the bus makes them: the robot's sends pay nothing.
+        self._track_echoes = hands_back_own_frames(bus)
         #: (arbitration ID, data) of the frames sent since the last poll -> how many.
         self._sent = {}
         self.last_tx_error = ''
@@ -144,7 +156,7 @@ class CanIo:
                     return self.last_tx_error
                 self.tx_frames += 1
                 self.bits += frame_bits(len(f.data), f.is_extended_id)
-                if not f.is_extended_id:   # the frames the control loop sends
+                if self._track_echoes and not f.is_extended_id:   # the loop's frames
                     key = (f.arbitration_id, bytes(f.data))
                     self._sent[key] = self._sent.get(key, 0) + 1
             return None

@@ -92,7 +92,7 @@ def run_node(args, env: Dict[str, str], workdir: str,
         floors.append(subprocess.Popen(
             _loop_command('floor', duration, out, args.realtime_priority), env=env))
 
-    extra = [a for p in args.node_param for a in ('-p', p)] if nut.tree is None else []
+    extra = bench_node.param_args(args.node_param) if nut.tree is None else []
     node = bench_node.run(args.duration, workdir, env, *_can_address(),
                           controller=args.controller, realtime_priority=args.realtime_priority,
                           extra_node_args=extra, on_window=attach, nut=nut, tag=tag)

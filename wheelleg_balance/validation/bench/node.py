@@ -108,6 +108,11 @@ class NodeUnderTest:
         return out
 
 
+def param_args(params: Sequence[str]) -> List[str]:
+    """Return the ROS arguments that set ``NAME:=VALUE`` parameters (-p NAME:=VALUE ...)."""
+    return [a for p in params for a in ('-p', p)]
+
+
 # ------------------------------------------------------------------------ sensor process
 
 def run_publisher(namespace: str, output: str, max_duration: float,

@@ -552,7 +552,7 @@ def run(duration: float, workdir: str, env: Dict[str, str], baseline: Optional[s
             session = bench_node.Session(
                 workdir, env, *_address(), nut=nut, controller=controller,
                 realtime_priority=realtime_priority, tag='_' + key,
-                extra_node_args=[a for p in node_params for a in ('-p', p)],
+                extra_node_args=bench_node.param_args(node_params),
                 max_duration=start_timeout + warmup + duration + 60.0,
                 plant_priority=plant_priority)
             result = soak_one(key, session, diag, duration, workdir, env, churn_period,
