@@ -409,6 +409,13 @@ def test_armed_node_sends_encoded_torque_frames_at_500_hz(rig):
     for figure in ('mean', 'p99', 'max'):
         core, whole = (float(loop['%s_%s_ms' % (k, figure)]) for k in ('core_compute', 'compute'))
         assert 0.0 < core <= whole, (figure, core, whole)
+    # Ticks over the compute budget (half the period), counted over the whole run: none if the
+    # slowest tick of the window was within it, and never more than the ticks run.
+    assert float(loop['compute_budget_ms']) == pytest.approx(1.0)
+    over, ticks = int(loop['over_budget']), int(loop['ticks'])
+    assert 0 <= over < ticks
+    if float(loop['compute_max_ms']) <= 1.0 and ticks <= 1024:
+        assert over == 0
 
 
 def _resting(data):

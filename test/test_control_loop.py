@@ -341,6 +341,36 @@ def test_late_ticks_are_those_past_late_after(late_after):
     assert loop.stats()['late_share'] == loop.late / 60
 
 
+@pytest.mark.parametrize('budget', [None, 0.0003])
+def test_ticks_over_the_compute_budget_are_counted_over_the_whole_run(budget):
+    # Ticks take 0.1 ms, then every 7th 1.2 ms, for 3000 ticks: more than the 1024 of the
+    # percentile rings, so only the counter sees the whole run. Default budget: half the period.
+    clock = _SimTime()
+    loop = DeadlineLoop(PERIOD_NS * 1e-9, clock_ns=clock.monotonic_ns, sleep=clock.sleep,
+                        max_catch_up=MAX_CATCH_UP, budget=budget)
+
+    def tick(now_ns):
+        k = loop.ticks
+        clock.ns += 1_200_000 if k % 7 == 0 else 100_000
+        if k == 2999:
+            loop.stop()
+    loop.run(tick)
+    stats = loop.stats()
+    assert stats['ticks'] == 3000
+    assert stats['budget'] == pytest.approx(PERIOD_NS * 0.5e-9 if budget is None else budget)
+    assert stats['over_budget'] == len(range(0, 3000, 7))   # 0.1 ms is within either budget
+    # Exactly the budget is within it.
+    clock = _SimTime()
+    loop = DeadlineLoop(PERIOD_NS * 1e-9, clock_ns=clock.monotonic_ns, sleep=clock.sleep)
+
+    def exact(now_ns):
+        clock.ns += PERIOD_NS // 2
+        if loop.ticks == 9:
+            loop.stop()
+    loop.run(exact)
+    assert loop.stats()['over_budget'] == 0
+
+
 @pytest.mark.parametrize('n', [1, 2, 3, 100, 1023, 1024])
 def test_window_stats_are_numpys_mean_p99_and_max(n):
     values = np.random.default_rng(n).exponential(0.0005, n)

@@ -195,6 +195,32 @@ def test_state_refuses_missing_and_out_of_reach_replies_without_raising():
     assert ctl.arm_refusal(s) == 'legs not homed'
 
 
+def test_state_is_the_same_kept_or_computed_afresh():
+    # One controller reads a sequence of replies in which one leg at a time changes (the legs
+    # commanded in turns), goes missing and comes back, and new offsets arrive; each state
+    # equals what a controller that never saw the earlier replies computes.
+    ctl = LegController(LEG, MOTORS)
+    rng = np.random.default_rng(3)
+    replies = _replies(MOTORS, LEG.inverse(0.5) * 2)
+    for k in range(60):
+        side = 2 * (k % 2)
+        if k % 7 == 3:
+            replies[side] = None
+        else:
+            q = LEG.inverse(rng.uniform(0.38, 0.68))
+            rates = LEG.hip_rates(*q, rng.uniform(-0.1, 0.1))
+            new = _replies(ctl.motors, q * 2, rates * 2)
+            replies[side:side + 2] = new[side:side + 2]
+        if k == 40:
+            ctl.set_offsets((0.1, 0.2, 0.3, 0.4))   # homing: the same replies, new angles
+        fresh = LegController(LEG, ctl.motors)
+        got, want = ctl.state(replies), fresh.state(replies)
+        assert got.problems == want.problems and got.valid == want.valid
+        for a, b in zip(got[:6], want[:6]):
+            assert np.array_equal(np.asarray(a, dtype=float), np.asarray(b, dtype=float),
+                                  equal_nan=True)
+
+
 @settings(max_examples=200, deadline=None)
 @given(st.lists(st.one_of(st.none(), st.tuples(st.floats(allow_nan=True, allow_infinity=True),
                                                st.floats(allow_nan=True, allow_infinity=True),

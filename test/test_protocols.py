@@ -134,6 +134,21 @@ def test_torque_frames_never_raise_and_stay_in_range(tau, motor_id):
         assert clamped - LSB_T - 1e-9 < cmd.torque <= clamped + 1e-9
 
 
+@settings(max_examples=500, deadline=None)
+@given(values=st.lists(st.one_of(st.floats(), st.sampled_from(
+    [12.5, -12.5, 50.0, -50.0, 500.0, 5.0, 18.0, -18.0, 0.0, -0.0])), min_size=5, max_size=5))
+def test_full_command_is_float_to_uint_of_each_field(values):
+    # command_frame packs each field as the firmware's float_to_uint does (clamped, truncated;
+    # NaN and inf as 0), whatever the value, at the ends of the ranges too.
+    ranges = ((-12.5, 12.5, 16), (-50.0, 50.0, 12), (0.0, 500.0, 12), (0.0, 5.0, 12),
+              (-18.0, 18.0, 12))
+    p, v, kp, kd, t = (float_to_uint(x if math.isfinite(x) else 0.0, lo, hi, bits)
+                       for x, (lo, hi, bits) in zip(values, ranges))
+    expected = bytes((p >> 8, p & 0xFF, v >> 4, ((v & 0xF) << 4) | (kp >> 8), kp & 0xFF,
+                      kd >> 4, ((kd & 0xF) << 4) | (t >> 8), t & 0xFF))
+    assert MIT.command_frame(9, *values) == Frame(9, expected)
+
+
 @settings(max_examples=300, deadline=None)
 @given(p=st.floats(-12.5, 12.5), v=st.floats(-50, 50), t=st.floats(-18, 18))
 def test_reply_round_trip(p, v, t):

@@ -383,6 +383,11 @@ class Legs:
         return [cf(c.motor_id, c.position, c.velocity, c.kp, c.kd, c.torque) for c in commands]
 
 
+def _motor_name(m) -> str:
+    """Name a motor in a problem's text: 'motor 3 (left_front)'."""
+    return 'motor %d (%s)' % (m.motor_id, m.name)
+
+
 class BalanceLoop:
     """The control tick (see the module docstring)."""
 
@@ -408,6 +413,8 @@ class BalanceLoop:
         self.wheel_states = [WheelState(m.direction, self.protocol if self.from_can else None,
                                         ws.wheel_speed_time_constant, wrap=ws.position_wraps)
                              for m in self.motors.motors] if self.from_can else []
+        self._wheel_state_of = {m.motor_id: w for m, w in zip(self.motors.motors,
+                                                              self.wheel_states)}
         self.has_leg_joints = bool(joint_state_reader(cfg).legs)
         self.sit_down_config = SitDownConfig(tail_pitch=cfg.safety.tail_pitch)
         self.sit: Optional[SitDown] = None
@@ -539,9 +546,10 @@ class BalanceLoop:
             self.odometry.update(s.wheel_vel_left, s.wheel_vel_right, s.theta_dot, dt)
         self._estimate_acceleration(dt)
         self._check_motors(now)
-        sensor_conflict = '; '.join(inputs.conflicts[k] for k in SENSOR_INPUTS
-                                    if k in inputs.conflicts)
-        self.input_conflicts = '; '.join(inputs.conflicts.values())
+        conflicts = inputs.conflicts
+        sensor_conflict = '; '.join(conflicts[k] for k in SENSOR_INPUTS
+                                    if k in conflicts) if conflicts else ''
+        self.input_conflicts = '; '.join(conflicts.values()) if conflicts else ''
         if inputs.estop:
             self._auto_arm = False
             was = sup.mode
@@ -600,8 +608,7 @@ class BalanceLoop:
                     legs.motors.on_frame(t, frame)
             elif self.from_can:
                 fb = motor.feedback
-                self.wheel_states[self.motors.motors.index(motor)].update(
-                    fb.position, fb.velocity, t)
+                self._wheel_state_of[motor.motor_id].update(fb.position, fb.velocity, t)
         cmd = inputs.cmd_vel
         conflicts = inputs.conflicts
         if cmd is not None:
@@ -963,21 +970,21 @@ class BalanceLoop:
                 fb = m.feedback
                 if fb is None:
                     continue
-                name = 'motor %d (%s)' % (m.motor_id, m.name)
                 code, m.error = m.error, 0
                 if code:
-                    text = '%s error %d: %s' % (name, code, error_reason(code))
+                    text = '%s error %d: %s' % (_motor_name(m), code, error_reason(code))
                     problems.append(text)
                     sup.report_fault(now, MOTOR_ERROR, text)
                 if m.rebooted is not None:
-                    text = '%s %s' % (name, m.rebooted)
+                    text = '%s %s' % (_motor_name(m), m.rebooted)
                     problems.append(text)
                     sup.report_fault(now, MOTOR_REBOOTED, text)
                 t = fb.temperature
                 if motors is self.motors:
                     scale = min(scale, derate(t, model.temp_derate, model.temp_max))
                 if t is not None and t >= model.temp_max:
-                    hot = '%s at %.0f deg C, temp_max %.0f deg C' % (name, t, model.temp_max)
+                    hot = '%s at %.0f deg C, temp_max %.0f deg C' % (_motor_name(m), t,
+                                                                   model.temp_max)
                     problems.append(hot)
         self.core.config.max_wheel_torque = self.cfg.safety.max_wheel_torque * scale
         self.motor_problems = problems

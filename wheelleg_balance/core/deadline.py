@@ -15,7 +15,11 @@ ones. What to do after a late tick is the caller's policy:
 
 Statistics per tick: the period since the previous tick, the compute time, and lateness; a tick
 that starts more than ``stall_threshold`` (10 ms) later than one period after the previous one
-counts as a stall, with its length (docs/benchmarks.md).
+counts as a stall, with its length (docs/benchmarks.md). A tick whose compute time exceeds the
+``budget`` (half the period: the other half is the bus's and the other processes') counts as
+over budget, counted over the whole run: the share of a window's ticks over budget tests the
+compute p99 of any window (within budget when at most 1 % are over), where the rings below
+give percentiles of the last ``TIMING_WINDOW`` ticks only.
 """
 from array import array
 import math
@@ -38,15 +42,17 @@ class DeadlineLoop:
     (None with resync_after set: serve all until resync_after periods behind); on_stall: called
     as on_stall(length [s]: how much later than one period after the previous tick this one
     started) from the loop once per stall (log it; keep it short); late_after [s]: a tick that
-    starts later than this after its deadline is late (default a quarter period).
+    starts later than this after its deadline is late (default a quarter period); budget [s]:
+    a tick computing longer than this is over budget (default half the period).
     Counters: ticks, caught_up (ticks served late to catch up), overruns (deadlines skipped),
-    resyncs, late (ticks later than late_after), stalls, longest_stall [s],
-    tick_errors (exceptions the tick let escape, passed to on_error).
+    resyncs, late (ticks later than late_after), over_budget (ticks computing longer than the
+    budget), stalls, longest_stall [s], tick_errors (exceptions the tick let escape, passed to
+    on_error).
     """
 
     def __init__(self, period: float, max_catch_up: Optional[int] = 5,
                  resync_after: Optional[int] = None, stall_threshold: float = STALL_THRESHOLD,
-                 late_after: Optional[float] = None,
+                 late_after: Optional[float] = None, budget: Optional[float] = None,
                  on_stall: Optional[Callable[[float], None]] = None,
                  on_error: Optional[Callable[[int, BaseException], None]] = None,
                  clock_ns: Callable[[], int] = time.monotonic_ns,
@@ -59,6 +65,7 @@ class DeadlineLoop:
         self.resync_after = resync_after
         self.stall_threshold_ns = int(stall_threshold * 1e9)
         self.late_ns = self.period_ns // 4 if late_after is None else int(late_after * 1e9)
+        self.budget_ns = self.period_ns // 2 if budget is None else int(round(budget * 1e9))
         self.on_stall = on_stall
         self.on_error = on_error
         self._clock = clock_ns
@@ -70,6 +77,7 @@ class DeadlineLoop:
         self.overruns = 0
         self.resyncs = 0
         self.late = 0
+        self.over_budget = 0
         self.stalls = 0
         self.longest_stall = 0.0
         self.tick_errors = 0
@@ -88,7 +96,7 @@ class DeadlineLoop:
     def run(self, tick: Callable[[int], None]) -> None:
         """Run ``tick(now_ns)`` every period until ``stop`` (exceptions go to on_error)."""
         clock, sleep, period_ns = self._clock, self._sleep, self.period_ns
-        late_ns = self.late_ns
+        late_ns, budget_ns = self.late_ns, self.budget_ns
         deadline = clock() + period_ns
         prev_start: Optional[int] = None
         while not self._stop:
@@ -116,6 +124,8 @@ class DeadlineLoop:
             end = clock()
             self.last_tick_ns = now
             self.computes[k] = (end - now) * 1e-9
+            if end - now > budget_ns:
+                self.over_budget += 1
             self.ticks += 1
             deadline = self._next_deadline(deadline + period_ns, end)
 
@@ -152,6 +162,7 @@ class DeadlineLoop:
         out = {
             'ticks': self.ticks, 'overruns': self.overruns, 'caught_up': self.caught_up,
             'resyncs': self.resyncs, 'late_share': self.late / ticks,
+            'over_budget': self.over_budget, 'budget': self.budget_ns * 1e-9,
             'tick_errors': self.tick_errors, 'stalls': self.stalls,
             'longest_stall': self.longest_stall,
         }

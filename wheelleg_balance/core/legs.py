@@ -261,6 +261,8 @@ class LegController:
         self.gains = gains
         self.weight_share = float(weight_share)
         self.homed = False
+        #: Per leg: (its hips' replies, the HipMotors they were read with, _leg_state's result).
+        self._memo = {}
         lo, hi = self.leg.height(self.leg.q_min, self.leg.q_min), \
             self.leg.height(self.leg.q_max, self.leg.q_max)
         #: The height range [m] the legs can be commanded to (their reach, symmetric stance).
@@ -303,31 +305,47 @@ class LegController:
 
     def state(self, replies: Sequence[Reply]) -> LegState:
         """Return the LegState from the four hip replies (None for a missing one); never raises."""
-        m, leg = self.motors, self.leg
+        left = self._leg_state(LEFT_LEG, replies)
+        right = self._leg_state(RIGHT_LEG, replies)
+        problems = left[5] + right[5]
+        valid = not problems
+        return LegState(left[0] + right[0], left[1] + right[1], (left[2], right[2]),
+                        0.5 * (left[2] + right[2]) if valid else math.nan,
+                        0.5 * (left[3] + right[3]) if valid else math.nan,
+                        left[4] + right[4], valid, problems)
+
+    def _leg_state(self, side: int, replies: Sequence[Reply]) -> tuple:
+        """
+        One leg's (q, q_dot, l, l_dot, knees, problems) from its hips' replies.
+
+        Kept while the replies and the offsets stay the same: with the legs commanded in
+        turns, one leg's hips have not replied since the previous tick.
+        """
+        pair = tuple(replies[i] if i < len(replies) else None for i in (side, side + 1))
+        m = self.motors
+        memo = self._memo.get(side)
+        if memo is not None and memo[1] is m and memo[0] == pair:
+            return memo[2]
+        leg = self.leg
         q, q_dot, problems = [], [], []
-        for i in range(4):
-            r = replies[i] if i < len(replies) else None
+        for k, r in enumerate(pair):
             if r is None or not (_finite(r[0]) and _finite(r[1])):
                 q.append(math.nan)
                 q_dot.append(math.nan)
-                problems.append('no reply from hip %s' % HIP_NAMES[i])
+                problems.append('no reply from hip %s' % HIP_NAMES[side + k])
                 continue
-            q.append(m.joint_angle(i, r[0]))
-            q_dot.append(m.directions[i] * r[1])
-        heights, rates, knees = [], [], []
-        for side, name in ((0, 'left'), (2, 'right')):
-            qf, qr = q[side], q[side + 1]
-            l = leg.height(qf, qr) if qf == qf and qr == qr else math.nan
-            if l != l and qf == qf and qr == qr:
-                problems.append('%s leg out of reach (q = %.3f, %.3f rad)' % (name, qf, qr))
-            heights.append(l)
-            rates.append(leg.height_rate(qf, qr, q_dot[side], q_dot[side + 1]))
-            knees.extend(leg.knee_angles(qf, qr))
-        valid = not problems
-        l_mean = 0.5 * (heights[0] + heights[1]) if valid else math.nan
-        l_dot = 0.5 * (rates[0] + rates[1]) if valid else math.nan
-        return LegState(tuple(q), tuple(q_dot), (heights[0], heights[1]), l_mean, l_dot,
-                        tuple(knees), valid, tuple(problems))
+            q.append(m.joint_angle(side + k, r[0]))
+            q_dot.append(m.directions[side + k] * r[1])
+        qf, qr = q
+        measured = qf == qf and qr == qr
+        l = leg.height(qf, qr) if measured else math.nan
+        if l != l and measured:
+            problems.append('%s leg out of reach (q = %.3f, %.3f rad)'
+                            % ('left' if side == LEFT_LEG else 'right', qf, qr))
+        out = (tuple(q), tuple(q_dot), l, leg.height_rate(qf, qr, q_dot[0], q_dot[1]),
+               tuple(leg.knee_angles(qf, qr)), tuple(problems))
+        self._memo[side] = (pair, m, out)
+        return out
 
     # ---- commands ---------------------------------------------------------------------------
 

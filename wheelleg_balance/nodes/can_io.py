@@ -58,6 +58,9 @@ def open_bus(interface: str, channel: str, udp_port: int = 43113) -> can.BusABC:
     return can.Bus(interface=interface, channel=channel)
 
 
+#: frame_bits of standard frames by data length (looked up for every frame received).
+_STANDARD_BITS = tuple(frame_bits(n) for n in range(9))
+
 #: Frames one poll reads at most. A 1 Mbit/s bus carries at most about 18 frames per 2 ms tick;
 #: udp_multicast also loops the node's own frames back.
 MAX_FRAMES_PER_POLL = 64
@@ -107,7 +110,7 @@ class CanIo:
         hold the tick; the rest wait for the next one. Error and remote frames are counted
         and dropped.
         """
-        n = 0
+        n = frames = echoes = bits = 0
         with self._lock:
             if self._closed:
                 return 0
@@ -122,22 +125,27 @@ class CanIo:
                         break
                     n += 1
                     if msg.is_error_frame or msg.is_remote_frame:
-                        self.rx_frames += 1
+                        frames += 1
                         continue
                     data = bytes(msg.data)
-                    if sent and not msg.is_extended_id:
+                    extended = msg.is_extended_id
+                    if sent and not extended:
                         key = (msg.arbitration_id, data)
                         copies = sent.get(key)
                         if copies:   # our own frame, handed back by the bus
                             sent[key] = copies - 1
-                            self.rx_echoes += 1
+                            echoes += 1
                             continue
-                    self.rx_frames += 1
-                    self.bits += frame_bits(msg.dlc, msg.is_extended_id)
-                    into.append((now, Frame(msg.arbitration_id, data, msg.is_extended_id)))
+                    frames += 1
+                    bits += _STANDARD_BITS[len(data)] if not extended and len(data) <= 8 \
+                        else frame_bits(len(data), extended)
+                    into.append((now, Frame(msg.arbitration_id, data, extended)))
             except (can.CanError, OSError, ValueError) as exc:
                 self.rx_errors += 1
                 self.last_rx_error = '%s: %s' % (type(exc).__name__, exc)
+            self.rx_frames += frames
+            self.rx_echoes += echoes
+            self.bits += bits
         return n
 
     def send(self, frames: Iterable[Frame]) -> Optional[str]:
@@ -155,7 +163,9 @@ class CanIo:
                     self.last_tx_error = '%s: %s' % (type(exc).__name__, exc)
                     return self.last_tx_error
                 self.tx_frames += 1
-                self.bits += frame_bits(len(f.data), f.is_extended_id)
+                size = len(f.data)
+                self.bits += _STANDARD_BITS[size] if not f.is_extended_id and size <= 8 \
+                    else frame_bits(size, f.is_extended_id)
                 if self._track_echoes and not f.is_extended_id:   # the loop's frames
                     key = (f.arbitration_id, bytes(f.data))
                     self._sent[key] = self._sent.get(key, 0) + 1

@@ -104,6 +104,10 @@ class MitProtocol(MotorProtocol):
         v0 = float_to_uint(0.0, self.v_min, self.v_max, 12)
         self._torque_prefix = bytes((p0 >> 8, p0 & 0xFF, v0 >> 4, (v0 & 0xF) << 4, 0, 0))
         self._t_span = self.t_max - self.t_min
+        #: command_frame's fields: (x_min, x_max, largest code, x_max - x_min) for float_to_uint.
+        self._fields = tuple((lo, hi, (1 << bits) - 1, hi - lo) for (lo, hi), bits in zip(
+            ((self.p_min, self.p_max), (self.v_min, self.v_max), (0.0, self.kp_max),
+             (0.0, self.kd_max), (self.t_min, self.t_max)), (16, 12, 12, 12, 12)))
 
     # ---- host side -------------------------------------------------------------------------
 
@@ -116,11 +120,14 @@ class MitProtocol(MotorProtocol):
         field at its maximum would read FF FF FF FF FF FF FF Fx, which the firmware takes for a
         special frame; keep p below p_max if you ever need such a command.)
         """
-        p = float_to_uint(_finite(position), self.p_min, self.p_max, 16)
-        v = float_to_uint(_finite(velocity), self.v_min, self.v_max, 12)
-        kp_i = float_to_uint(_finite(kp), 0.0, self.kp_max, 12)
-        kd_i = float_to_uint(_finite(kd), 0.0, self.kd_max, 12)
-        t = float_to_uint(_finite(torque), self.t_min, self.t_max, 12)
+        # float_to_uint of each field, inlined (ten hip frames a tick at most); a non-finite
+        # value (NaN fails both comparisons) is sent as 0.
+        codes = []
+        for x, (lo, hi, top, span) in zip((position, velocity, kp, kd, torque), self._fields):
+            if not -math.inf < x < math.inf:
+                x = 0.0
+            codes.append(int(((hi if x > hi else lo if x < lo else x) - lo) * top / span))
+        p, v, kp_i, kd_i, t = codes
         data = bytes((p >> 8, p & 0xFF, v >> 4, ((v & 0xF) << 4) | (kp_i >> 8), kp_i & 0xFF,
                       kd_i >> 4, ((kd_i & 0xF) << 4) | (t >> 8), t & 0xFF))
         return Frame(motor_id, data)

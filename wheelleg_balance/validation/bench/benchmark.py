@@ -45,9 +45,11 @@ PERIOD_NS = 2_000_000
 LATE_NS = 1_000_000
 
 # Targets (issues 6 and 10): the tick's compute time p99 within half the period, alone
-# (core) and in the node (its own diagnostics); the node at 500 Hz with no deadline skipped,
+# (core) and in the node (its own count of ticks over budget, every tick of the window); the node at 500 Hz with no deadline skipped,
 # its three processes together under 35 % of a core.
 TICK_P99_US = 1000.0
+#: ... at the 99th percentile: at most 1 % of the ticks over it [%].
+TICK_OVER_BUDGET_PCT = 1.0
 RATE_TOLERANCE = 0.001         # achieved rate within 0.1 % of 500 Hz
 FLOOR_FACTOR = 1.2             # p99 period and late share no worse than 1.2 x the floor's
 NODE_CPU_PERCENT = 35.0
@@ -149,9 +151,11 @@ def node_targets(node: Dict, floor: Optional[Dict], label: str) -> List[Dict]:
                      limit='500 +- %.1f' % (500.0 * RATE_TOLERANCE), **{'pass': row['pass']}))
     skipped = node.get('overruns_in_window', math.nan)
     rows.append(dict(name='%s deadlines skipped' % label, unit='ticks', **check(skipped, 0)))
-    compute = _float(node.get('node_loop', {}).get('compute_p99_ms'))
-    rows.append(dict(name='%s tick compute p99' % label, unit='us',
-                     **check(1e3 * compute, TICK_P99_US)))
+    # The tick's compute p99 within TICK_P99_US over every tick of the window: at most 1 % of
+    # them over that budget (the node's own p99 covers only its last 2 s: printed, not judged).
+    over = node.get('over_budget_share', math.nan)
+    rows.append(dict(name='%s ticks computing > %.0f us' % (label, TICK_P99_US), unit='%',
+                     **check(100.0 * over, TICK_OVER_BUDGET_PCT)))
     # Where the tick's time goes: BalanceLoop.tick alone (the rest is the link and the bus).
     core = _float(node.get('node_loop', {}).get('core_compute_p99_ms'))
     rows.append(dict(name='%s BalanceLoop.tick p99' % label, unit='us',
@@ -283,6 +287,10 @@ def print_node(key: str, node: Dict, w) -> None:
                    loop.get('core_compute_p99_ms', '-'), skipped)
         w('  own diagnostics: %s; compute mean %s ms, p99 %s ms (of which BalanceLoop.tick '
           'mean %s ms, p99 %s ms); %s deadlines skipped in the window\n' % figures)
+        w('  ticks computing longer than the budget (%s ms), whole window: %s of %s (%s %%)\n' % (
+            loop.get('compute_budget_ms', '-'), _fmt(node.get('over_budget_in_window'), '%.0f'),
+            _fmt(node.get('ticks_counted'), '%.0f'),
+            _fmt(100.0 * node.get('over_budget_share', math.nan), '%.2f')))
 
 
 # ------------------------------------------------------------------------------------ main
