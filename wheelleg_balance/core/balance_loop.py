@@ -983,8 +983,8 @@ class BalanceLoop:
                 if motors is self.motors:
                     scale = min(scale, derate(t, model.temp_derate, model.temp_max))
                 if t is not None and t >= model.temp_max:
-                    hot = '%s at %.0f deg C, temp_max %.0f deg C' % (_motor_name(m), t,
-                                                                   model.temp_max)
+                    hot = '%s at %.0f deg C, temp_max %.0f deg C' % (
+                        _motor_name(m), t, model.temp_max)
                     problems.append(hot)
         self.core.config.max_wheel_torque = self.cfg.safety.max_wheel_torque * scale
         self.motor_problems = problems

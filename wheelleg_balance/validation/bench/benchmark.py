@@ -45,8 +45,8 @@ PERIOD_NS = 2_000_000
 LATE_NS = 1_000_000
 
 # Targets (issues 6 and 10): the tick's compute time p99 within half the period, alone
-# (core) and in the node (its own count of ticks over budget, every tick of the window); the node at 500 Hz with no deadline skipped,
-# its three processes together under 35 % of a core.
+# (core) and in the node (its own count of ticks over budget, every tick of the window); the
+# node at 500 Hz with no deadline skipped, its three processes together under 35 % of a core.
 TICK_P99_US = 1000.0
 #: ... at the 99th percentile: at most 1 % of the ticks over it [%].
 TICK_OVER_BUDGET_PCT = 1.0
