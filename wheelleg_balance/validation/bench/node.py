@@ -76,8 +76,8 @@ TIMEOUT = 0.25
 #: Seconds from the start of the probing to the measurement window. The motors never move and
 #: the IMU reads upright, so the controller's state drifts to a steady torque (about -2.2 N m
 #: on the left wheel with ida_pbc, +-0.4 N m with the probe), crossing zero about 1 s after the
-#: probing starts and settled after about 2 s: a window opened then would count those ticks as
-#: not balancing (under load the start is detected late: it happened with 2 s, 2026-12-06).
+#: probing starts and settled after about 2 s: a window opened before then counts those ticks
+#: as not balancing (one run on a loaded host did, with a 2 s warm-up, 2026-12-06).
 WARMUP = 4.0
 #: Receive buffer of the recorder's socket [bytes] (SO_RCVBUFFORCE needs CAP_NET_ADMIN; else
 #: SO_RCVBUF, capped by net.core.rmem_max).
