@@ -5,6 +5,7 @@ The quick run checks the report's structure and that every figure is positive an
 statistics are checked on event series whose answer is known by construction; the real-time
 helpers must return a clean (ok, message) whatever the machine allows.
 """
+import io
 import json
 import math
 import os
@@ -270,6 +271,30 @@ def test_parse_args_quick_and_parts():
     assert args.output == os.path.join('output', 'benchmark.json')
     with pytest.raises(SystemExit):
         benchmark.parse_args(['--parts', 'core,gpu'])
+
+
+def test_rounds_alternate_which_tree_goes_first_and_the_median_round_stands():
+    assert benchmark.node_order(1, False) == ['node']
+    assert benchmark.node_order(3, False) == ['node'] * 3
+    assert benchmark.node_order(1, True) == ['node_before', 'node']
+    assert benchmark.node_order(4, True) == ['node_before', 'node', 'node', 'node_before',
+                                             'node_before', 'node', 'node', 'node_before']
+    rounds = [{'round': k, 'cpu_percent': c} for k, c in enumerate((41.0, 35.0, 47.0, 39.0))]
+    assert benchmark.median_round(rounds)['round'] == 3    # 39: the lower middle of four
+    assert benchmark.median_round(rounds[:3])['round'] == 0   # 41 of 35, 41, 47
+    assert benchmark.median_round([{'round': 0}, {'round': 1, 'cpu_percent': 40.0}])[
+        'round'] == 1   # a round without a CPU figure never stands for the tree
+    assert benchmark.parse_args(['--rounds', '3']).rounds == 3
+    assert benchmark.parse_args([]).rounds == 1
+    with pytest.raises(SystemExit):
+        benchmark.parse_args(['--rounds', '0'])
+    out = io.StringIO()
+    benchmark.print_rounds({'node_rounds': [{'cpu_percent': 33.5, 'over_budget_share': 0.0083},
+                                            {'cpu_percent': 45.2}],
+                            'node_before_rounds': [{'cpu_percent': 43.4}]}, out.write)
+    lines = out.getvalue().splitlines()
+    assert lines[-2].split() == ['1', '33.5', '43.4', '0.83']
+    assert lines[-1].split() == ['2', '45.2', '-', '-']
 
 
 def test_profile_summary(tmp_path):

@@ -9,14 +9,17 @@ benchmark: does the 2 ms balance loop hold in Python? Everything measured in one
    from another process and its six motors emulated on a udp_multicast CAN bus; its frames,
    CPU, compute time and latency. ``--before-tree DIR`` measures the node of another source
    tree (a checkout of an earlier commit) the same way in the same run ('node_before');
-   ``--node-param NAME:=VALUE`` sets a parameter of this tree's node.
+   ``--node-param NAME:=VALUE`` sets a parameter of this tree's node; ``--rounds N`` measures
+   the node N times (with a before tree in the order ABBA..., before and after alternating
+   which goes first, so a drift of the host's load shows in both alike): every round is in
+   the report, the round of median CPU stands for each tree in the table and the targets.
 
 Prints a table and writes a JSON report; the targets are reported pass/fail, they never change
 the exit code (1 only when a part could not run). Methods and figures: docs/benchmarks.md.
 
     ros2 run wheelleg_balance benchmark [--duration 60] [--output output/benchmark.json]
         [--quick] [--parts core,floor,baseline,node] [--profile] [--before-tree DIR]
-        [--node-param NAME:=VALUE]
+        [--node-param NAME:=VALUE] [--rounds N]
 """
 import argparse
 import datetime
@@ -240,6 +243,7 @@ def print_report(report: Dict, out=sys.stdout) -> None:
     for key in ('node', 'node_before'):
         if report.get(key):
             print_node(key, report[key], w)
+    print_rounds(report, w)
     if report['targets']:
         w('\n  %-34s %14s %14s  %s\n' % ('target', 'value', 'limit', 'result'))
         for t in report['targets']:
@@ -293,6 +297,22 @@ def print_node(key: str, node: Dict, w) -> None:
             _fmt(100.0 * node.get('over_budget_share', math.nan), '%.2f')))
 
 
+def print_rounds(report: Dict, w) -> None:
+    """Print every round of a ``--rounds`` run (the table above shows the median ones)."""
+    after, before = report.get('node_rounds', []), report.get('node_before_rounds', [])
+    if not after:
+        return
+    w('\nrounds (in the order run%s; the table and the targets take the median-CPU round of '
+      'each tree)\n' % (', before and after alternating which goes first' if before else ''))
+    w('  %-6s %22s %22s %26s\n' % ('round', 'CPU after [%]', 'CPU before [%]',
+                                   'ticks > 1 ms, after [%]'))
+    for k, a in enumerate(after):
+        b = before[k] if k < len(before) else {}
+        w('  %-6d %22s %22s %26s\n' % (
+            k + 1, _fmt(a.get('cpu_percent'), '%.1f'), _fmt(b.get('cpu_percent'), '%.1f'),
+            _fmt(100.0 * a.get('over_budget_share', math.nan), '%.2f')))
+
+
 # ------------------------------------------------------------------------------------ main
 
 def parse_args(argv=None):
@@ -325,6 +345,9 @@ def parse_args(argv=None):
     parser.add_argument('--node-param', action='append', default=[], metavar='NAME:=VALUE',
                         help="a parameter of this tree's balance_node (repeatable; not for "
                         'the node of --before-tree), e.g. legs.command_divider:=1')
+    parser.add_argument('--rounds', type=int, default=1,
+                        help='measure the node this many times (with --before-tree in ABBA '
+                        'order); the round of median CPU is reported for each tree')
     parser.add_argument('--workdir', default=None,
                         help='keep the raw recordings (npz, logs) here instead of a temp dir')
     args = parser.parse_args(argv)
@@ -343,6 +366,8 @@ def parse_args(argv=None):
         args.ticks = 2000 if args.quick else 20000
     if args.duration < 1.0 or args.ticks < 100:
         parser.error('--duration must be >= 1 s and --ticks >= 100')
+    if args.rounds < 1:
+        parser.error('--rounds must be >= 1')
     return args
 
 
@@ -360,7 +385,8 @@ def main(argv=None) -> int:
                      'parts': args.parts, 'controller': args.controller,
                      'realtime_priority': args.realtime_priority, 'period_ms': 2.0,
                      'late_threshold_ms': 1.0, 'ros_domain_id': int(env['ROS_DOMAIN_ID']),
-                     'before_tree': args.before_tree, 'node_params': args.node_param},
+                     'before_tree': args.before_tree, 'node_params': args.node_param,
+                     'rounds': args.rounds},
         'errors': {},
     }
     steps = {
@@ -372,17 +398,29 @@ def main(argv=None) -> int:
         'node': lambda: run_node(args, env, workdir),
     }
     parts = list(args.parts)
-    if args.before_tree and 'node' in parts:
-        parts.insert(parts.index('node'), 'node_before')
+    if 'node' in parts:
+        k = parts.index('node')
+        parts[k:k + 1] = node_order(args.rounds, bool(args.before_tree))
+    rounds: Dict[str, List[Dict]] = {'node': [], 'node_before': []}
     try:
         for part in parts:
             print('[benchmark] %s ...' % part, flush=True)
             t0 = time.monotonic()
             try:
-                report[part] = steps[part]()
+                result = steps[part]()
+                if part in rounds:
+                    result['round'] = len(rounds[part]) + 1
+                    rounds[part].append(result)
+                else:
+                    report[part] = result
             except Exception as exc:  # noqa: B902 -- report the part as not run, go on
                 report['errors'][part] = '%s: %s' % (type(exc).__name__, exc)
             print('[benchmark] %s done in %.0f s' % (part, time.monotonic() - t0), flush=True)
+        for part, results in rounds.items():
+            if results:
+                report[part] = median_round(results)
+                if args.rounds > 1:
+                    report[part + '_rounds'] = results
         if args.profile:
             report['profile'] = profile(args, env, workdir)
             if args.before_tree:
@@ -402,6 +440,28 @@ def main(argv=None) -> int:
     print_report(report)
     print('\nreport: %s' % os.path.abspath(args.output))
     return 1 if report['errors'] else 0
+
+
+def node_order(rounds: int, before: bool) -> List[str]:
+    """
+    Return the node parts to run: 'node' ``rounds`` times, each with 'node_before' if asked.
+
+    With a before tree the rounds alternate which tree goes first (before, after, after,
+    before, ...): a load that rises or falls through the run then weighs on both alike.
+    """
+    if not before:
+        return ['node'] * rounds
+    order = []
+    for k in range(rounds):
+        pair = ['node_before', 'node']
+        order += pair if k % 2 == 0 else pair[::-1]
+    return order
+
+
+def median_round(results: List[Dict]) -> Dict:
+    """Return the round whose node CPU is the median (the lower middle one of an even count)."""
+    ranked = sorted(results, key=lambda r: r.get('cpu_percent', math.inf))
+    return ranked[(len(ranked) - 1) // 2]
 
 
 def profile(args, env: Dict[str, str], workdir: str,
