@@ -58,9 +58,6 @@ def open_bus(interface: str, channel: str, udp_port: int = 43113) -> can.BusABC:
     return can.Bus(interface=interface, channel=channel)
 
 
-#: frame_bits of standard frames by data length (looked up for every frame received).
-_STANDARD_BITS = tuple(frame_bits(n) for n in range(9))
-
 #: Frames one poll reads at most. A 1 Mbit/s bus carries at most about 18 frames per 2 ms tick;
 #: udp_multicast also loops the node's own frames back.
 MAX_FRAMES_PER_POLL = 64
@@ -137,8 +134,7 @@ class CanIo:
                             echoes += 1
                             continue
                     frames += 1
-                    bits += _STANDARD_BITS[len(data)] if not extended and len(data) <= 8 \
-                        else frame_bits(len(data), extended)
+                    bits += frame_bits(len(data), extended)
                     into.append((now, Frame(msg.arbitration_id, data, extended)))
             except (can.CanError, OSError, ValueError) as exc:
                 self.rx_errors += 1
@@ -163,9 +159,7 @@ class CanIo:
                     self.last_tx_error = '%s: %s' % (type(exc).__name__, exc)
                     return self.last_tx_error
                 self.tx_frames += 1
-                size = len(f.data)
-                self.bits += _STANDARD_BITS[size] if not f.is_extended_id and size <= 8 \
-                    else frame_bits(size, f.is_extended_id)
+                self.bits += frame_bits(len(f.data), f.is_extended_id)
                 if self._track_echoes and not f.is_extended_id:   # the loop's frames
                     key = (f.arbitration_id, bytes(f.data))
                     self._sent[key] = self._sent.get(key, 0) + 1
