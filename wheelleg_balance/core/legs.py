@@ -246,6 +246,17 @@ class LegState(NamedTuple):
     problems: Tuple[str, ...]
 
 
+class _OneLeg(NamedTuple):
+    """One leg's part of a LegState: its two hips' q, q_dot; its height l, l_dot; knees."""
+
+    q: Tuple[float, float]
+    q_dot: Tuple[float, float]
+    l: float
+    l_dot: float
+    knees: Tuple[float, float]
+    problems: Tuple[str, ...]
+
+
 class LegController:
     """
     Hip motor commands from leg heights, and leg state from hip replies (see module docstring).
@@ -307,16 +318,16 @@ class LegController:
         """Return the LegState from the four hip replies (None for a missing one); never raises."""
         left = self._leg_state(LEFT_LEG, replies)
         right = self._leg_state(RIGHT_LEG, replies)
-        problems = left[5] + right[5]
+        problems = left.problems + right.problems
         valid = not problems
-        return LegState(left[0] + right[0], left[1] + right[1], (left[2], right[2]),
-                        0.5 * (left[2] + right[2]) if valid else math.nan,
-                        0.5 * (left[3] + right[3]) if valid else math.nan,
-                        left[4] + right[4], valid, problems)
+        return LegState(left.q + right.q, left.q_dot + right.q_dot, (left.l, right.l),
+                        0.5 * (left.l + right.l) if valid else math.nan,
+                        0.5 * (left.l_dot + right.l_dot) if valid else math.nan,
+                        left.knees + right.knees, valid, problems)
 
-    def _leg_state(self, side: int, replies: Sequence[Reply]) -> tuple:
+    def _leg_state(self, side: int, replies: Sequence[Reply]) -> _OneLeg:
         """
-        One leg's (q, q_dot, l, l_dot, knees, problems) from its hips' replies.
+        One leg's part of the LegState from its hips' replies.
 
         Kept while the replies and the offsets stay the same: with the legs commanded in
         turns, one leg's hips have not replied since the previous tick.
@@ -342,8 +353,8 @@ class LegController:
         if l != l and measured:
             problems.append('%s leg out of reach (q = %.3f, %.3f rad)'
                             % ('left' if side == LEFT_LEG else 'right', qf, qr))
-        out = (tuple(q), tuple(q_dot), l, leg.height_rate(qf, qr, q_dot[0], q_dot[1]),
-               tuple(leg.knee_angles(qf, qr)), tuple(problems))
+        out = _OneLeg(tuple(q), tuple(q_dot), l, leg.height_rate(qf, qr, q_dot[0], q_dot[1]),
+                      tuple(leg.knee_angles(qf, qr)), tuple(problems))
         self._memo[side] = (pair, m, out)
         return out
 
