@@ -19,7 +19,8 @@ import pytest
 
 from wheelleg_balance.core import realtime
 from wheelleg_balance.core.pipeline import CONTROLLER_NAMES
-from wheelleg_balance.validation.bench import benchmark, profiling as bench_profile
+from wheelleg_balance.validation.bench import benchmark, bus as bench_bus, \
+    profiling as bench_profile
 from wheelleg_balance.validation.bench.node import probe_latencies
 from wheelleg_balance.validation.bench.stats import period_stats, served_deadlines
 
@@ -295,6 +296,75 @@ def test_rounds_alternate_which_tree_goes_first_and_the_median_round_stands():
     lines = out.getvalue().splitlines()
     assert lines[-2].split() == ['1', '33.5', '43.4', '0.83']
     assert lines[-1].split() == ['2', '45.2', '-', '-']
+
+
+# ------------------------------------------------------------------------------ bus part
+
+def test_socketcan_stand_in_carries_frames_both_ways_without_echoes():
+    from wheelleg_balance.core.protocols.base import Frame
+    from wheelleg_balance.nodes.can_io import CanIo
+    ours, theirs = bench_bus.socketcan_pair()
+    a, b = CanIo(ours), CanIo(theirs)
+    try:
+        sent = [Frame(0x7FF, bytes(range(8)), False), Frame(0x1ABCDEF, b'\x01\x02\x03', True),
+                Frame(0x001, b'', False)]
+        assert a.send(sent) is None
+        got = []
+        assert b.poll(got) == 3
+        assert [f for _, f in got] == sent   # through build_can_frame and capture_message
+        mine = []
+        assert a.poll(mine) == 0 and a.rx_echoes == 0   # a CAN socket gets no echoes
+        assert b.send([Frame(0x101, bytes(8), False)]) is None
+        assert a.poll(mine) == 1 and mine[0][1].arbitration_id == 0x101
+    finally:
+        a.close()
+        b.close()
+
+
+@pytest.mark.parametrize('transport', bench_bus.TRANSPORTS)
+def test_bus_part_answers_every_command_on_each_transport(tmp_path, transport):
+    out = tmp_path / 'bus.json'
+    group, port = benchmark._can_address()
+    env = dict(os.environ)
+    env['PYTHONPATH'] = os.pathsep.join(p for p in (str(REPO), env.get('PYTHONPATH')) if p)
+    subprocess.run([sys.executable, '-m', 'wheelleg_balance.validation.bench.bus', transport,
+                    '--duration', '1', '--warmup', '0.5', '--frames', '3', '--output', str(out),
+                    '--group', group, '--port', str(port)], env=env, check=True, timeout=60)
+    r = json.loads(out.read_text())
+    assert r['transport'] == transport and r['frames'] == 3 and r['send_error'] == ''
+    assert r['ticks'] > 100   # about 500 in the 1 s window
+    per_tick = r['per_tick']
+    assert per_tick['tx_frames'] == pytest.approx(3.0, abs=0.05)
+    # One reply per command (the last tick's replies may still be on their way).
+    assert per_tick['rx_frames'] == pytest.approx(3.0, abs=6.0 / r['ticks'] + 0.01)
+    assert per_tick['tx_errors'] == 0 and per_tick['rx_errors'] == 0
+    # udp_multicast hands the sender its own frames back; SocketCAN does not.
+    echoes = per_tick['rx_echoes']
+    assert echoes == (pytest.approx(3.0, abs=0.05) if transport == 'udp_multicast' else 0.0)
+    assert _positive_finite(r['cpu_percent']) and _positive_finite(r['io_mean_us'])
+    assert r['io_median_us'] <= r['io_p99_us']
+
+
+def test_bus_frames_per_tick_and_the_socketcan_estimate():
+    assert bench_bus.frames_per_tick(1) == 6   # every hip every tick
+    assert bench_bus.frames_per_tick(2) == 4   # the legs take turns
+    assert bench_bus.frames_per_tick(4) == 3
+    bus = {'udp_multicast': {'cpu_percent': 13.0}, 'socketcan_path': {'cpu_percent': 10.0}}
+    assert bench_bus.node_cpu_on_socketcan(39.5, bus) == pytest.approx(36.5)
+    assert math.isnan(bench_bus.node_cpu_on_socketcan(39.5, {'udp_multicast': {}}))
+    assert math.isnan(bench_bus.node_cpu_on_socketcan(39.5, {}))
+    args = benchmark.parse_args(['--parts', 'bus,node'])
+    assert args.parts == ['node', 'bus']
+    fig = {'cpu_percent': 13.0, 'io_mean_us': 250.0, 'io_p99_us': 350.0,
+           'per_tick': {'rx_echoes': 4.0}}
+    out = io.StringIO()
+    benchmark.print_bus({'settings': {'duration': 30.0}, 'bus': {
+        'frames_per_tick': 4, 'udp_multicast': fig,
+        'socketcan_path': {**fig, 'cpu_percent': 10.0, 'per_tick': {'rx_echoes': 0.0}},
+        'node_cpu_on_socketcan': 36.5}}, out.write)
+    text = out.getvalue()
+    assert '4 commands out' in text and '250 / 350' in text and '36.5 %' in text
+    assert [line.split()[-1] for line in text.splitlines()[3:5]] == ['4.0', '0.0']
 
 
 def test_profile_summary(tmp_path):

@@ -12,13 +12,16 @@ benchmark: does the 2 ms balance loop hold in Python? Everything measured in one
    ``--node-param NAME:=VALUE`` sets a parameter of this tree's node; ``--rounds N`` measures
    the node N times (with a before tree in the order ABBA..., before and after alternating
    which goes first, so a drift of the host's load shows in both alike): every round is in
-   the report, the round of median CPU stands for each tree in the table and the targets.
+   the report, the round of median CPU stands for each tree in the table and the targets;
+5. bus: the node's CAN traffic through CanIo alone, on the node part's udp_multicast bus and on
+   python-can's SocketcanBus code over a Unix socket (bench/bus.py), each in its own process:
+   what the test bus costs, and an estimate of the node's CPU on SocketCAN (not a target).
 
 Prints a table and writes a JSON report; the targets are reported pass/fail, they never change
 the exit code (1 only when a part could not run). Methods and figures: docs/benchmarks.md.
 
     ros2 run wheelleg_balance benchmark [--duration 60] [--output output/benchmark.json]
-        [--quick] [--parts core,floor,baseline,node] [--profile] [--before-tree DIR]
+        [--quick] [--parts core,floor,baseline,node,bus] [--profile] [--before-tree DIR]
         [--node-param NAME:=VALUE] [--rounds N]
 """
 import argparse
@@ -37,13 +40,15 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
-from . import core as bench_core, node as bench_node, profiling as bench_profile
+from . import bus as bench_bus, core as bench_core, node as bench_node, \
+    profiling as bench_profile
 from .stats import check, period_stats
 from .. import child_env, json_safe
+from ...core.config import BalanceConfig
 from ...core.pipeline import CONTROLLER_NAMES
 from ...core.realtime import kernel_is_preempt_rt
 
-PARTS = ('core', 'floor', 'baseline', 'node')
+PARTS = ('core', 'floor', 'baseline', 'node', 'bus')
 PERIOD_NS = 2_000_000
 LATE_NS = 1_000_000
 
@@ -105,6 +110,27 @@ def run_node(args, env: Dict[str, str], workdir: str,
         if proc.wait(timeout=120) == 0:
             node['floor_during_node'] = loop_result(out)
     return node
+
+
+def run_bus(args, env: Dict[str, str], workdir: str) -> Dict:
+    """Run the bus part: CanIo alone on each transport, one process each (bench/bus.py)."""
+    divider = BalanceConfig().legs.command_divider
+    for p in args.node_param:
+        name, _, value = p.partition(':=')
+        if name == 'legs.command_divider':
+            divider = int(value)
+    frames = bench_bus.frames_per_tick(divider)
+    result = {'frames_per_tick': frames}
+    for transport in bench_bus.TRANSPORTS:
+        out = os.path.join(workdir, 'bus_%s.json' % transport)
+        group, port = _can_address()
+        subprocess.run([sys.executable, '-m', 'wheelleg_balance.validation.bench.bus', transport,
+                        '--duration', str(args.duration), '--frames', str(frames),
+                        '--output', out, '--group', group, '--port', str(port)],
+                       env=env, check=True, timeout=args.duration + 120)
+        with open(out) as f:
+            result[transport] = json.load(f)
+    return result
 
 
 def before_tree(path: str) -> bench_node.NodeUnderTest:
@@ -244,6 +270,7 @@ def print_report(report: Dict, out=sys.stdout) -> None:
         if report.get(key):
             print_node(key, report[key], w)
     print_rounds(report, w)
+    print_bus(report, w)
     if report['targets']:
         w('\n  %-34s %14s %14s  %s\n' % ('target', 'value', 'limit', 'result'))
         for t in report['targets']:
@@ -311,6 +338,31 @@ def print_rounds(report: Dict, w) -> None:
         w('  %-6d %22s %22s %26s\n' % (
             k + 1, _fmt(a.get('cpu_percent'), '%.1f'), _fmt(b.get('cpu_percent'), '%.1f'),
             _fmt(100.0 * a.get('over_budget_share', math.nan), '%.2f')))
+
+
+def print_bus(report: Dict, w) -> None:
+    """Print the bus part: CanIo alone per transport, and the node's CPU estimated on SocketCAN."""
+    bus = report.get('bus')
+    if not bus:
+        return
+    w('\nCAN I/O alone (CanIo at 500 Hz: %d commands out, one reply each in, per tick; a peer '
+      'process answers; %.0f s each)\n' % (bus['frames_per_tick'],
+                                           report['settings']['duration']))
+    w('  %-34s %18s %26s %16s\n' % ('transport', 'CPU [% of a core]',
+                                    'poll + send mean / p99 [us]', 'echoes per tick'))
+    names = {'udp_multicast': "udp_multicast (the node part's)",
+             'socketcan_path': 'socketcan_path (SocketcanBus)'}
+    for transport in bench_bus.TRANSPORTS:
+        r = bus.get(transport)
+        if r:
+            w('  %-34s %18s %26s %16s\n' % (
+                names[transport], _fmt(r['cpu_percent'], '%.1f'),
+                '%s / %s' % (_fmt(r['io_mean_us'], '%.0f'), _fmt(r['io_p99_us'], '%.0f')),
+                _fmt(r['per_tick']['rx_echoes'], '%.1f')))
+    if 'node_cpu_on_socketcan' in bus:
+        w('  the node on SocketCAN, estimated (node CPU - udp_multicast + socketcan_path): %s %% '
+          'of a core (not measured: no SocketCAN here; not a target)\n'
+          % _fmt(bus['node_cpu_on_socketcan'], '%.1f'))
 
 
 # ------------------------------------------------------------------------------------ main
@@ -396,6 +448,7 @@ def main(argv=None) -> int:
         'node_before': lambda: run_node(args, env, workdir, before_tree(args.before_tree),
                                         tag='_before'),
         'node': lambda: run_node(args, env, workdir),
+        'bus': lambda: run_bus(args, env, workdir),
     }
     parts = list(args.parts)
     if 'node' in parts:
@@ -429,6 +482,9 @@ def main(argv=None) -> int:
     finally:
         if args.workdir is None:
             shutil.rmtree(workdir, ignore_errors=True)
+    if report.get('bus') and report.get('node'):
+        report['bus']['node_cpu_on_socketcan'] = bench_bus.node_cpu_on_socketcan(
+            report['node']['cpu_percent'], report['bus'])
     report['machine']['load_average_end'] = [round(v, 2) for v in os.getloadavg()]
     report['targets'] = targets(report)
     out_dir = os.path.dirname(os.path.abspath(args.output))
