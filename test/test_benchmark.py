@@ -321,6 +321,26 @@ def test_socketcan_stand_in_carries_frames_both_ways_without_echoes():
         b.close()
 
 
+def test_raw_reference_frames_are_the_ones_socketcanbus_reads_and_writes():
+    import socket
+    from wheelleg_balance.core.protocols.base import Frame
+    from wheelleg_balance.nodes.can_io import CanIo
+    mine, peers = socket.socketpair(socket.AF_UNIX, socket.SOCK_DGRAM)
+    raw, python_can = bench_bus.RawFrameIo(mine), CanIo(bench_bus.UnixSocketcanBus(peers))
+    try:
+        frames = [Frame(0x123, bytes(range(8)), False), Frame(0x1ABCDEF, b'\xaa', True)]
+        raw.send(frames)
+        got = []
+        assert python_can.poll(got) == 2 and [f for _, f in got] == frames
+        assert python_can.send(frames[::-1]) is None
+        got.clear()
+        assert raw.poll(got) == 2 and [f for _, f in got] == frames[::-1]
+        assert raw.counters()['tx_frames'] == 2 and raw.counters()['rx_frames'] == 2
+    finally:
+        raw.close()
+        python_can.close()
+
+
 @pytest.mark.parametrize('transport', bench_bus.TRANSPORTS)
 def test_bus_part_answers_every_command_on_each_transport(tmp_path, transport):
     out = tmp_path / 'bus.json'
@@ -338,7 +358,7 @@ def test_bus_part_answers_every_command_on_each_transport(tmp_path, transport):
     # One reply per command (the last tick's replies may still be on their way).
     assert per_tick['rx_frames'] == pytest.approx(3.0, abs=6.0 / r['ticks'] + 0.01)
     assert per_tick['tx_errors'] == 0 and per_tick['rx_errors'] == 0
-    # udp_multicast hands the sender its own frames back; SocketCAN does not.
+    # udp_multicast hands the sender its own frames back; SocketCAN (and its stand-ins) not.
     echoes = per_tick['rx_echoes']
     assert echoes == (pytest.approx(3.0, abs=0.05) if transport == 'udp_multicast' else 0.0)
     assert _positive_finite(r['cpu_percent']) and _positive_finite(r['io_mean_us'])
@@ -351,6 +371,8 @@ def test_bus_frames_per_tick_and_the_socketcan_estimate():
     assert bench_bus.frames_per_tick(4) == 3
     bus = {'udp_multicast': {'cpu_percent': 13.0}, 'socketcan_path': {'cpu_percent': 10.0}}
     assert bench_bus.node_cpu_on_socketcan(39.5, bus) == pytest.approx(36.5)
+    bus['raw_socket'] = {'cpu_percent': 4.5}
+    assert bench_bus.node_cpu_on_socketcan(39.5, bus, 'raw_socket') == pytest.approx(31.0)
     assert math.isnan(bench_bus.node_cpu_on_socketcan(39.5, {'udp_multicast': {}}))
     assert math.isnan(bench_bus.node_cpu_on_socketcan(39.5, {}))
     args = benchmark.parse_args(['--parts', 'bus,node'])
@@ -361,9 +383,10 @@ def test_bus_frames_per_tick_and_the_socketcan_estimate():
     benchmark.print_bus({'settings': {'duration': 30.0}, 'bus': {
         'frames_per_tick': 4, 'udp_multicast': fig,
         'socketcan_path': {**fig, 'cpu_percent': 10.0, 'per_tick': {'rx_echoes': 0.0}},
-        'node_cpu_on_socketcan': 36.5}}, out.write)
+        'node_cpu_on_socketcan_path': 36.5}}, out.write)
     text = out.getvalue()
-    assert '4 commands out' in text and '250 / 350' in text and '36.5 %' in text
+    assert '4 commands out' in text and '250 / 350' in text
+    assert 'python-can 36.5 %, raw frames - %' in text
     assert [line.split()[-1] for line in text.splitlines()[3:5]] == ['4.0', '0.0']
 
 

@@ -14,8 +14,9 @@ benchmark: does the 2 ms balance loop hold in Python? Everything measured in one
    which goes first, so a drift of the host's load shows in both alike): every round is in
    the report, the round of median CPU stands for each tree in the table and the targets;
 5. bus: the node's CAN traffic through CanIo alone, on the node part's udp_multicast bus and on
-   python-can's SocketcanBus code over a Unix socket (bench/bus.py), each in its own process:
-   what the test bus costs, and an estimate of the node's CPU on SocketCAN (not a target).
+   python-can's SocketcanBus code over a Unix socket, and the same frames without python-can
+   (a reference), each in its own process (bench/bus.py): what the test bus costs, and
+   estimates of the node's CPU on SocketCAN (not targets).
 
 Prints a table and writes a JSON report; the targets are reported pass/fail, they never change
 the exit code (1 only when a part could not run). Methods and figures: docs/benchmarks.md.
@@ -351,7 +352,8 @@ def print_bus(report: Dict, w) -> None:
     w('  %-34s %18s %26s %16s\n' % ('transport', 'CPU [% of a core]',
                                     'poll + send mean / p99 [us]', 'echoes per tick'))
     names = {'udp_multicast': "udp_multicast (the node part's)",
-             'socketcan_path': 'socketcan_path (SocketcanBus)'}
+             'socketcan_path': 'socketcan_path (SocketcanBus)',
+             'raw_socket': 'raw_socket (no python-can; reference)'}
     for transport in bench_bus.TRANSPORTS:
         r = bus.get(transport)
         if r:
@@ -359,10 +361,12 @@ def print_bus(report: Dict, w) -> None:
                 names[transport], _fmt(r['cpu_percent'], '%.1f'),
                 '%s / %s' % (_fmt(r['io_mean_us'], '%.0f'), _fmt(r['io_p99_us'], '%.0f')),
                 _fmt(r['per_tick']['rx_echoes'], '%.1f')))
-    if 'node_cpu_on_socketcan' in bus:
-        w('  the node on SocketCAN, estimated (node CPU - udp_multicast + socketcan_path): %s %% '
-          'of a core (not measured: no SocketCAN here; not a target)\n'
-          % _fmt(bus['node_cpu_on_socketcan'], '%.1f'))
+    estimates = [(bus.get('node_cpu_on_' + path), label) for path, label in (
+        ('socketcan_path', 'python-can'), ('raw_socket', 'raw frames'))]
+    if any(v is not None for v, _ in estimates):
+        w('  the node on SocketCAN, estimated (node CPU - udp_multicast + that path; not '
+          'measured, no SocketCAN here; not a target): %s\n' % ', '.join(
+              '%s %s %%' % (label, _fmt(v, '%.1f')) for v, label in estimates))
 
 
 # ------------------------------------------------------------------------------------ main
@@ -483,8 +487,9 @@ def main(argv=None) -> int:
         if args.workdir is None:
             shutil.rmtree(workdir, ignore_errors=True)
     if report.get('bus') and report.get('node'):
-        report['bus']['node_cpu_on_socketcan'] = bench_bus.node_cpu_on_socketcan(
-            report['node']['cpu_percent'], report['bus'])
+        for path in ('socketcan_path', 'raw_socket'):
+            report['bus']['node_cpu_on_' + path] = bench_bus.node_cpu_on_socketcan(
+                report['node']['cpu_percent'], report['bus'], path)
     report['machine']['load_average_end'] = [round(v, 2) for v in os.getloadavg()]
     report['targets'] = targets(report)
     out_dir = os.path.dirname(os.path.abspath(args.output))
