@@ -304,14 +304,14 @@ def test_socketcan_stand_in_carries_frames_both_ways_without_echoes():
     from wheelleg_balance.core.protocols.base import Frame
     from wheelleg_balance.nodes.can_io import CanIo
     ours, theirs = bench_bus.socketcan_pair()
-    a, b = CanIo(ours), CanIo(theirs)
+    a, b = CanIo(ours), CanIo(theirs, raw_frames=False)   # the node's path; python-can's
     try:
         sent = [Frame(0x7FF, bytes(range(8)), False), Frame(0x1ABCDEF, b'\x01\x02\x03', True),
                 Frame(0x001, b'', False)]
         assert a.send(sent) is None
         got = []
         assert b.poll(got) == 3
-        assert [f for _, f in got] == sent   # through build_can_frame and capture_message
+        assert [f for _, f in got] == sent
         mine = []
         assert a.poll(mine) == 0 and a.rx_echoes == 0   # a CAN socket gets no echoes
         assert b.send([Frame(0x101, bytes(8), False)]) is None
@@ -319,26 +319,6 @@ def test_socketcan_stand_in_carries_frames_both_ways_without_echoes():
     finally:
         a.close()
         b.close()
-
-
-def test_raw_reference_frames_are_the_ones_socketcanbus_reads_and_writes():
-    import socket
-    from wheelleg_balance.core.protocols.base import Frame
-    from wheelleg_balance.nodes.can_io import CanIo
-    mine, peers = socket.socketpair(socket.AF_UNIX, socket.SOCK_DGRAM)
-    raw, python_can = bench_bus.RawFrameIo(mine), CanIo(bench_bus.UnixSocketcanBus(peers))
-    try:
-        frames = [Frame(0x123, bytes(range(8)), False), Frame(0x1ABCDEF, b'\xaa', True)]
-        raw.send(frames)
-        got = []
-        assert python_can.poll(got) == 2 and [f for _, f in got] == frames
-        assert python_can.send(frames[::-1]) is None
-        got.clear()
-        assert raw.poll(got) == 2 and [f for _, f in got] == frames[::-1]
-        assert raw.counters()['tx_frames'] == 2 and raw.counters()['rx_frames'] == 2
-    finally:
-        raw.close()
-        python_can.close()
 
 
 @pytest.mark.parametrize('transport', bench_bus.TRANSPORTS)
@@ -371,8 +351,9 @@ def test_bus_frames_per_tick_and_the_socketcan_estimate():
     assert bench_bus.frames_per_tick(4) == 3
     bus = {'udp_multicast': {'cpu_percent': 13.0}, 'socketcan_path': {'cpu_percent': 10.0}}
     assert bench_bus.node_cpu_on_socketcan(39.5, bus) == pytest.approx(36.5)
-    bus['raw_socket'] = {'cpu_percent': 4.5}
-    assert bench_bus.node_cpu_on_socketcan(39.5, bus, 'raw_socket') == pytest.approx(31.0)
+    bus['socketcan_python_can'] = {'cpu_percent': 13.5}
+    assert bench_bus.node_cpu_on_socketcan(39.5, bus, 'socketcan_python_can') == \
+        pytest.approx(40.0)
     assert math.isnan(bench_bus.node_cpu_on_socketcan(39.5, {'udp_multicast': {}}))
     assert math.isnan(bench_bus.node_cpu_on_socketcan(39.5, {}))
     args = benchmark.parse_args(['--parts', 'bus,node'])
@@ -386,7 +367,7 @@ def test_bus_frames_per_tick_and_the_socketcan_estimate():
         'node_cpu_on_socketcan_path': 36.5}}, out.write)
     text = out.getvalue()
     assert '4 commands out' in text and '250 / 350' in text
-    assert 'python-can 36.5 %, raw frames - %' in text
+    assert "as it runs 36.5 %, with python-can's recv and send - %" in text
     assert [line.split()[-1] for line in text.splitlines()[3:5]] == ['4.0', '0.0']
 
 

@@ -10,6 +10,7 @@ balance_node's control loop mechanics: what makes the 2 ms loop hold in Python.
   depend on the load; a tick later than 10 ms is counted and reported as a stall;
 - the real-time options are tried from the control loop and reported, refused or not.
 """
+import errno
 import os
 import time
 import uuid
@@ -221,6 +222,103 @@ def test_poll_reads_a_bounded_number_of_frames_per_tick():
     finally:
         io.close()
         peer.shutdown()
+
+
+# On SocketCAN CanIo reads and writes struct can_frame on python-can's socket itself. No
+# SocketCAN in these kernels: python-can's SocketcanBus on a Unix packet socket stands in
+# (validation/bench/bus.py), and the other end runs python-can's own frame code.
+
+def test_on_socketcan_frames_go_straight_on_the_socket_as_python_can_writes_and_reads_them():
+    from wheelleg_balance.core.protocols.base import Frame
+    from wheelleg_balance.validation.bench.bus import socketcan_pair
+    ours, theirs = socketcan_pair()
+    io = CanIo(ours, clock=lambda: 5.0)
+    assert io.raw is ours.socket
+    frames = [Frame(0x7FF, bytes(range(8)), False), Frame(0x1ABCDEF, b'\x01\x02\x03', True),
+              Frame(0x000, b'', False)] + MitProtocol().torque_frames({1: 0.5, 2: -0.5})
+    try:
+        assert io.send(frames) is None
+        for f in frames:   # python-can's capture_message reads what CanIo wrote
+            msg = theirs.recv(1.0)
+            assert (msg.arbitration_id, bytes(msg.data), msg.is_extended_id) == \
+                (f.arbitration_id, f.data, f.is_extended_id)
+            assert not (msg.is_error_frame or msg.is_remote_frame)
+        for f in frames:   # ... and CanIo reads what python-can's build_can_frame wrote
+            theirs.send(can.Message(arbitration_id=f.arbitration_id, data=f.data,
+                                    is_extended_id=f.is_extended_id))
+        got = []
+        assert io.poll(got) == len(frames)
+        assert got == [(5.0, f) for f in frames]
+        assert (io.tx_frames, io.rx_frames, io.rx_echoes, io.tx_errors) == (5, 5, 0, 0)
+        # The bus load counts the same bits as on python-can's path.
+        plain = CanIo(VirtualBus(channel='wlb-%s' % uuid.uuid4().hex))
+        assert plain.raw is None
+        plain.send(frames)
+        assert io.bits == 2 * plain.bits
+        plain.close()
+        # Error and remote frames: counted, dropped, as python-can's path does.
+        theirs.send(can.Message(arbitration_id=0x4, is_error_frame=True, data=bytes(8)))
+        theirs.send(can.Message(arbitration_id=0x5, is_remote_frame=True, dlc=8))
+        got = []
+        assert io.poll(got) == 2 and got == [] and io.rx_frames == 7
+        assert io.poll(got, max_frames=0) == 0
+    finally:
+        io.close()
+        theirs.shutdown()
+
+
+def test_on_socketcan_a_bad_read_or_a_failed_send_is_an_error_text_never_an_exception():
+    from wheelleg_balance.core.protocols.base import Frame
+    from wheelleg_balance.validation.bench.bus import socketcan_pair
+    ours, theirs = socketcan_pair()
+    io = CanIo(ours)
+    try:
+        theirs.socket.send(b'\x01\x02\x03')   # no struct can_frame
+        theirs.send(can.Message(arbitration_id=0x10, data=b'\x01', is_extended_id=False))
+        got = []
+        assert io.poll(got) == 1 and got == [] and io.rx_errors == 1
+        assert 'no CAN frame' in io.last_rx_error
+        assert io.poll(got) == 1 and got[0][1].arbitration_id == 0x10   # the next one is read
+        assert 'classic CAN' in io.send([Frame(0x1, bytes(9), False)])
+        theirs.shutdown()   # the other end gone: every send fails, as on a bus that is down
+        error = io.send([Frame(0x1, bytes(8), False), Frame(0x2, bytes(8), False)])
+        assert error.startswith('CanOperationError: Failed to transmit: [Errno')
+        assert (io.tx_errors, io.tx_frames) == (2, 0)
+    finally:
+        io.close()
+    assert io.send([Frame(0x1, bytes(8), False)]) == 'bus closed' and io.poll([]) == 0
+
+
+def test_on_socketcan_a_full_socket_buffer_waits_send_timeout_then_is_a_send_error():
+    from wheelleg_balance.core.protocols.base import Frame
+    from wheelleg_balance.validation.bench.bus import socketcan_pair
+    ours, theirs = socketcan_pair()
+    io = CanIo(ours, send_timeout=0.001)
+    frame = Frame(0x1, bytes(8), False)
+    try:
+        sent = 0
+        while io.send([frame]) is None and sent < 100000:   # nobody reads: the buffer fills
+            sent += 1
+        assert 0 < sent < 100000 and io.tx_frames == sent and io.tx_errors == 1
+        assert io.last_tx_error.startswith('CanOperationError: Failed to transmit: [Errno %d]'
+                                           % errno.EAGAIN)
+        assert theirs.recv(1.0) is not None   # room for one frame again
+        assert io.send([frame]) is None and io.tx_frames == sent + 1
+    finally:
+        io.close()
+        theirs.shutdown()
+
+
+def test_python_cans_own_path_stays_where_it_is_asked_for_or_filters_run_in_python():
+    from wheelleg_balance.validation.bench.bus import socketcan_pair
+    ours, theirs = socketcan_pair()
+    try:
+        assert CanIo(ours, raw_frames=False).raw is None
+        ours.set_filters([{'can_id': 0x10, 'can_mask': 0x7FF}])
+        assert CanIo(ours).raw is None
+    finally:
+        ours.shutdown()
+        theirs.shutdown()
 
 
 class _FailingBus(can.BusABC):

@@ -1,12 +1,12 @@
 """
 The CAN bus of the control loop: python-can on one side, core Frames on the other.
 
-Sending is synchronous from the control loop, one ``bus.send`` with a short timeout per frame
-(never the kernel's periodic send: it would keep sending the last torque if Python stalled).
+Sending is synchronous from the control loop, one send with a short timeout per frame (never
+the kernel's periodic send: it would keep sending the last torque if Python stalled).
 A failed send (``can.CanError``, e.g. the ``CanOperationError`` of a full socketcan TX queue, or
 an OSError) is returned as a message for the safety supervisor, never raised.
-Replies are read by the control loop too: ``poll()`` at the start of each tick drains
-``bus.recv(timeout=0)`` into (receipt time, Frame) pairs for core/balance_loop.py, which decodes
+Replies are read by the control loop too: ``poll()`` at the start of each tick drains the
+bus without waiting into (receipt time, Frame) pairs for core/balance_loop.py, which decodes
 them. No receive thread: a python-can Notifier woke 1000-2000 times a second and competed with
 the control thread for the GIL (docs/benchmarks.md). A reply is thus known to one tick (2 ms),
 well inside ``motor_timeout``.
@@ -16,12 +16,22 @@ default), and python-can's ``receive_own_messages`` is off; its udp_multicast te
 them back all the same (every member of the group, the sender too, gets each datagram). Such an
 echo of a frame sent since the previous poll is dropped here, before it is decoded, counted or
 added to the bus load: on the test bus four of a tick's eight received frames were echoes.
+
+On SocketCAN python-can opens, binds and configures the raw socket (error frames, its kernel
+filter), and the frames of the loop are read and written on that socket directly, one
+``struct can_frame`` of <linux/can.h> each (``raw_socket_of``): python-can's recv and send
+cost three times as much per frame, 6 % of a core at the six-motor node's 500 Hz traffic
+(the benchmark's bus part, docs/benchmarks.md). Every other interface goes through python-can.
 """
+import select
+import socket
+import struct
 import threading
 import time
 from typing import Callable, Iterable, List, Optional, Tuple
 
 import can
+from can.interfaces.socketcan import SocketcanBus
 from can.interfaces.udp_multicast import UdpMulticastBus
 
 from ..core.can_budget import frame_bits
@@ -36,6 +46,34 @@ def hands_back_own_frames(bus: can.BusABC) -> bool:
     SocketCAN's raw sockets do not by default.
     """
     return isinstance(bus, UdpMulticastBus) or bool(getattr(bus, 'receive_own_messages', False))
+
+
+#: struct can_frame of <linux/can.h>: can_id with the EFF/RTR/ERR flags, len, two pad bytes and
+#: len8_dlc, data[8] (the layout of python-can's build_can_frame and capture_message).
+CAN_FRAME = struct.Struct('=IB3x8s')
+CAN_EFF_FLAG = 0x80000000
+CAN_RTR_FLAG = 0x40000000
+CAN_ERR_FLAG = 0x20000000
+CAN_EFF_MASK = 0x1FFFFFFF
+CAN_SFF_MASK = 0x7FF
+
+
+def raw_socket_of(bus: can.BusABC) -> Optional[socket.socket]:
+    """
+    Return the raw CAN socket under ``bus`` when frames may go on it directly, else None.
+
+    That is a python-can SocketcanBus of classic CAN frames with no filter of its own: a
+    filter python-can runs in Python, or CAN FD frames (72 bytes), keep python-can's path.
+    """
+    if isinstance(bus, SocketcanBus) and bus.protocol is can.CanProtocol.CAN_20 \
+            and not bus.filters:
+        return getattr(bus, 'socket', None)
+    return None
+
+
+def _os_error_text(action: str, exc: OSError) -> str:
+    # The text python-can's SocketcanBus gives the same failure.
+    return 'CanOperationError: Failed to %s: [Errno %s] %s' % (action, exc.errno, exc.strerror)
 
 
 #: IP_MULTICAST_TTL of the udp_multicast test bus: 0, this host only.
@@ -70,12 +108,14 @@ class CanIo:
     Counters: tx_frames, tx_errors, rx_frames, rx_errors, rx_echoes (own frames the bus handed
     back, dropped); last_tx_error / last_rx_error hold the newest error text; bits: the bit
     times of the data frames sent and received (core/can_budget.py, worst-case stuffing), for
-    the bus load.
+    the bus load. raw_frames: False keeps python-can's recv and send on SocketCAN too (the
+    benchmark's comparison); ``raw`` is the socket the frames go on directly (None: python-can).
     """
 
     def __init__(self, bus: can.BusABC, send_timeout: float = 0.0005,
-                 clock: Callable[[], float] = time.monotonic):
+                 clock: Callable[[], float] = time.monotonic, raw_frames: bool = True):
         self.bus = bus
+        self.raw = raw_socket_of(bus) if raw_frames else None
         # The udp_multicast test bus sends without waiting: for a send timeout python-can puts
         # its one socket in timeout mode, and CPython then polls before every recvmsg and
         # sendto (three system calls per reply instead of two); a full socket buffer is a
@@ -107,6 +147,8 @@ class CanIo:
         hold the tick; the rest wait for the next one. Error and remote frames are counted
         and dropped.
         """
+        if self.raw is not None:
+            return self._poll_raw(into, max_frames)
         n = frames = echoes = bits = 0
         with self._lock:
             if self._closed:
@@ -144,11 +186,51 @@ class CanIo:
             self.bits += bits
         return n
 
+    def _poll_raw(self, into: List[Tuple[float, Frame]], max_frames: int) -> int:
+        # poll() on the raw CAN socket: one recv and one struct per frame, never blocking.
+        n = frames = bits = 0
+        with self._lock:
+            if self._closed:
+                return 0
+            now = self._clock()
+            recv, unpack, size = self.raw.recv, CAN_FRAME.unpack, CAN_FRAME.size
+            try:
+                while n < max_frames:
+                    try:
+                        cf = recv(size, socket.MSG_DONTWAIT)
+                    except (BlockingIOError, InterruptedError):
+                        break
+                    n += 1
+                    if len(cf) != size:
+                        raise ValueError('a %d-byte read is no CAN frame' % len(cf))
+                    can_id, length, data = unpack(cf)
+                    frames += 1
+                    if can_id & (CAN_ERR_FLAG | CAN_RTR_FLAG):
+                        continue   # counted and dropped, as on python-can's path
+                    length = min(length, 8)
+                    if can_id & CAN_EFF_FLAG:
+                        bits += frame_bits(length, True)
+                        into.append((now, Frame(can_id & CAN_EFF_MASK, data[:length], True)))
+                    else:
+                        bits += frame_bits(length, False)
+                        into.append((now, Frame(can_id & CAN_SFF_MASK, data[:length], False)))
+            except OSError as exc:
+                self.rx_errors += 1
+                self.last_rx_error = _os_error_text('receive', exc)
+            except ValueError as exc:
+                self.rx_errors += 1
+                self.last_rx_error = 'ValueError: %s' % exc
+            self.rx_frames += frames
+            self.bits += bits
+        return n
+
     def send(self, frames: Iterable[Frame]) -> Optional[str]:
         """Send the frames in order; stop at the first failure and return its text (else None)."""
         with self._lock:  # the control loop and shutdown may both send
             if self._closed:
                 return 'bus closed'
+            if self.raw is not None:
+                return self._send_raw(frames)
             for f in frames:
                 msg = can.Message(arbitration_id=f.arbitration_id, data=f.data,
                                   is_extended_id=f.is_extended_id)
@@ -164,6 +246,38 @@ class CanIo:
                     key = (f.arbitration_id, bytes(f.data))
                     self._sent[key] = self._sent.get(key, 0) + 1
             return None
+
+    def _send_raw(self, frames: Iterable[Frame]) -> Optional[str]:
+        # send() on the raw CAN socket (the lock held). A full TX queue is ENOBUFS at once, as
+        # through python-can; a full socket buffer waits up to send_timeout for room, as
+        # python-can's select before each send does.
+        send, pack = self.raw.send, CAN_FRAME.pack
+        for f in frames:
+            data = f.data
+            try:
+                if len(data) > 8:
+                    raise ValueError('%d data bytes in a classic CAN frame' % len(data))
+                can_id = (f.arbitration_id | CAN_EFF_FLAG) if f.is_extended_id \
+                    else f.arbitration_id
+                cf = pack(can_id, len(data), data)
+                try:
+                    sent = send(cf, socket.MSG_DONTWAIT)
+                except BlockingIOError:
+                    select.select([], [self.raw], [], self.send_timeout)
+                    sent = send(cf, socket.MSG_DONTWAIT)
+                if sent != CAN_FRAME.size:
+                    raise ValueError('sent %d of %d bytes' % (sent, CAN_FRAME.size))
+            except OSError as exc:
+                self.last_tx_error = _os_error_text('transmit', exc)
+            except (ValueError, struct.error) as exc:
+                self.last_tx_error = '%s: %s' % (type(exc).__name__, exc)
+            else:
+                self.tx_frames += 1
+                self.bits += frame_bits(len(data), f.is_extended_id)
+                continue
+            self.tx_errors += 1
+            return self.last_tx_error
+        return None
 
     def counters(self) -> dict:
         """Return the counters and last errors, as plain values."""

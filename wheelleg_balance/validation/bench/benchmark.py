@@ -14,9 +14,9 @@ benchmark: does the 2 ms balance loop hold in Python? Everything measured in one
    which goes first, so a drift of the host's load shows in both alike): every round is in
    the report, the round of median CPU stands for each tree in the table and the targets;
 5. bus: the node's CAN traffic through CanIo alone, on the node part's udp_multicast bus and on
-   python-can's SocketcanBus code over a Unix socket, and the same frames without python-can
-   (a reference), each in its own process (bench/bus.py): what the test bus costs, and
-   estimates of the node's CPU on SocketCAN (not targets).
+   a python-can SocketcanBus over a Unix socket, both as CanIo runs there and through
+   python-can's recv and send, each in its own process (bench/bus.py): what the test bus
+   costs, and estimates of the node's CPU on SocketCAN (not targets).
 
 Prints a table and writes a JSON report; the targets are reported pass/fail, they never change
 the exit code (1 only when a part could not run). Methods and figures: docs/benchmarks.md.
@@ -352,8 +352,8 @@ def print_bus(report: Dict, w) -> None:
     w('  %-34s %18s %26s %16s\n' % ('transport', 'CPU [% of a core]',
                                     'poll + send mean / p99 [us]', 'echoes per tick'))
     names = {'udp_multicast': "udp_multicast (the node part's)",
-             'socketcan_path': 'socketcan_path (SocketcanBus)',
-             'raw_socket': 'raw_socket (no python-can; reference)'}
+             'socketcan_path': 'socketcan_path (the node on SocketCAN)',
+             'socketcan_python_can': "socketcan_python_can (python-can's recv and send)"}
     for transport in bench_bus.TRANSPORTS:
         r = bus.get(transport)
         if r:
@@ -361,8 +361,9 @@ def print_bus(report: Dict, w) -> None:
                 names[transport], _fmt(r['cpu_percent'], '%.1f'),
                 '%s / %s' % (_fmt(r['io_mean_us'], '%.0f'), _fmt(r['io_p99_us'], '%.0f')),
                 _fmt(r['per_tick']['rx_echoes'], '%.1f')))
-    estimates = [(bus.get('node_cpu_on_' + path), label) for path, label in (
-        ('socketcan_path', 'python-can'), ('raw_socket', 'raw frames'))]
+    labels = (('socketcan_path', 'as it runs'),
+              ('socketcan_python_can', "with python-can's recv and send"))
+    estimates = [(bus.get('node_cpu_on_' + path), label) for path, label in labels]
     if any(v is not None for v, _ in estimates):
         w('  the node on SocketCAN, estimated (node CPU - udp_multicast + that path; not '
           'measured, no SocketCAN here; not a target): %s\n' % ', '.join(
@@ -487,7 +488,7 @@ def main(argv=None) -> int:
         if args.workdir is None:
             shutil.rmtree(workdir, ignore_errors=True)
     if report.get('bus') and report.get('node'):
-        for path in ('socketcan_path', 'raw_socket'):
+        for path in ('socketcan_path', 'socketcan_python_can'):
             report['bus']['node_cpu_on_' + path] = bench_bus.node_cpu_on_socketcan(
                 report['node']['cpu_percent'], report['bus'], path)
     report['machine']['load_average_end'] = [round(v, 2) for v in os.getloadavg()]

@@ -9,14 +9,13 @@ echoes only after python-can has decoded them). The robot's bus is SocketCAN: a 
 node's CPU figure can be read for the robot:
 
 - ``udp_multicast``: CanIo on the benchmark's test bus (the node's own code and settings);
-- ``socketcan_path``: CanIo on python-can's ``SocketcanBus``, its own send and receive code,
-  over a Unix datagram socket pair (``UnixSocketcanBus``). The kernel's CAN stack (the driver,
-  the TX queue) is not in this figure; the Python side of every frame is.
-- ``raw_socket``: a reference, as the floor loop is for the loop: the same frames as
-  ``struct can_frame`` straight on the Unix socket (``RawFrameIo``: one recv or send and one
-  struct per frame, no python-can, no CanIo). The least Python can spend on them; not the
-  node's path.
+- ``socketcan_path``: CanIo as it runs on SocketCAN, on a python-can ``SocketcanBus`` over a
+  Unix packet socket pair (``UnixSocketcanBus``): the frames straight on the bus's socket;
+- ``socketcan_python_can``: the same through python-can's own recv and send (select, then
+  ``capture_message``; ``build_can_frame``, select, send), CanIo's path before 2026-12-06.
 
+The kernel's CAN stack (the driver, the TX queue) is in neither SocketCAN figure; the Python
+side of every frame is.
 Each transport runs in its own process: a DeadlineLoop at 2 ms (core/deadline.py, the node's
 loop) polls the replies and sends the node's commands of one tick (``frames`` frames; the
 six-motor node with its legs taking turns sends four); a peer process answers each command
@@ -31,7 +30,6 @@ import json
 import math
 import multiprocessing
 import socket
-import struct
 import threading
 import time
 from typing import Dict
@@ -45,7 +43,7 @@ from ...core.deadline import DeadlineLoop
 from ...core.protocols.base import Frame
 from ...nodes.can_io import CanIo, open_bus
 
-TRANSPORTS = ('udp_multicast', 'socketcan_path', 'raw_socket')
+TRANSPORTS = ('udp_multicast', 'socketcan_path', 'socketcan_python_can')
 PERIOD = 0.002
 #: Seconds run before the measured window (the peer started, the caches warm).
 WARMUP = 2.0
@@ -55,7 +53,7 @@ REPLY_OFFSET = 0x100
 
 class UnixSocketcanBus(SocketcanBus):
     """
-    python-can's SocketcanBus on a Unix datagram socket (no CAN in this kernel).
+    python-can's SocketcanBus on a Unix packet socket (no CAN in this kernel).
 
     Its send and receive are SocketcanBus's own: select, then ``capture_message`` (recvmsg
     with the SO_TIMESTAMPNS time, the 16-byte frame dissected into a Message) to receive;
@@ -68,7 +66,7 @@ class UnixSocketcanBus(SocketcanBus):
         # The attributes SocketcanBus.__init__ sets, on the given socket.
         self.socket = sock
         self.channel = 'unix'
-        self.channel_info = 'python-can SocketcanBus on a Unix datagram socket'
+        self.channel_info = 'python-can SocketcanBus on a Unix packet socket'
         self._bcm_sockets = {}
         self._is_filtered = False
         self._task_id = 0
@@ -85,58 +83,10 @@ class UnixSocketcanBus(SocketcanBus):
 
 def socketcan_pair():
     """Return two UnixSocketcanBus ends of one socket pair: (the node's, the motors')."""
-    a, b = socket.socketpair(socket.AF_UNIX, socket.SOCK_DGRAM)
+    # SEQPACKET, not DGRAM: a datagram pair queues only net.unix.max_dgram_qlen (10) frames,
+    # which a peer preempted for three ticks would overflow; this one queues by its buffer.
+    a, b = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
     return UnixSocketcanBus(a), UnixSocketcanBus(b)
-
-
-#: struct can_frame of <linux/can.h>: can_id (with the EFF flag), len, 3 pad bytes, data[8].
-_CAN_FRAME = struct.Struct('=IB3x8s')
-_EFF_FLAG = 0x80000000
-
-
-class RawFrameIo:
-    """
-    The raw_socket reference: CanIo's poll and send without python-can (module docstring).
-
-    One system call and one struct per frame on a non-blocking socket of ``struct can_frame``.
-    """
-
-    def __init__(self, sock: socket.socket):
-        sock.setblocking(False)
-        self.sock = sock
-        self.tx_frames = self.rx_frames = self.tx_errors = self.rx_errors = 0
-
-    def poll(self, into) -> int:
-        """Append (receipt time, Frame) of every waiting frame to ``into``; return how many."""
-        now, n, recv, unpack = time.monotonic(), 0, self.sock.recv, _CAN_FRAME.unpack
-        while True:
-            try:
-                can_id, length, data = unpack(recv(16))
-            except BlockingIOError:
-                break
-            extended = bool(can_id & _EFF_FLAG)
-            into.append((now, Frame(can_id & (0x1FFFFFFF if extended else 0x7FF),
-                                    data[:length], extended)))
-            n += 1
-        self.rx_frames += n
-        return n
-
-    def send(self, frames) -> None:
-        """Send the frames (None: no error, as CanIo.send)."""
-        send, pack = self.sock.send, _CAN_FRAME.pack
-        for f in frames:
-            send(pack(f.arbitration_id | (_EFF_FLAG if f.is_extended_id else 0),
-                      len(f.data), f.data))
-        self.tx_frames += len(frames)
-
-    def counters(self) -> dict:
-        """Return the counters named as CanIo's."""
-        return {'tx_frames': self.tx_frames, 'rx_frames': self.rx_frames, 'rx_echoes': 0,
-                'tx_errors': self.tx_errors, 'rx_errors': self.rx_errors}
-
-    def close(self) -> None:
-        """Close the socket."""
-        self.sock.close()
 
 
 def answer(bus: can.BusABC, stop) -> None:
@@ -158,17 +108,16 @@ def run_io(transport: str, duration: float, frames: int = 4, group: str = '239.7
         raise ValueError('transport must be one of %s' % ', '.join(TRANSPORTS))
     if transport == 'udp_multicast':
         ours, theirs = open_bus('udp_multicast', group, port), None
-    else:   # the peer answers through SocketcanBus's code either way
-        mine, peers = socket.socketpair(socket.AF_UNIX, socket.SOCK_DGRAM)
-        theirs = UnixSocketcanBus(peers)
-        ours = mine if transport == 'raw_socket' else UnixSocketcanBus(mine)
+    else:
+        ours, theirs = socketcan_pair()
     ctx = multiprocessing.get_context('fork')   # the peer inherits its end of the pair
     stop = ctx.Event()
     peer = ctx.Process(target=_peer, args=(transport, theirs, group, port, stop), daemon=True)
     peer.start()
     if theirs is not None:
         theirs.shutdown()   # the peer's end, in this process (the peer has its own copy)
-    io = RawFrameIo(ours) if transport == 'raw_socket' else CanIo(ours)
+    # The peer answers through python-can's SocketcanBus code either way.
+    io = CanIo(ours, raw_frames=transport != 'socketcan_python_can')
     commands = [Frame(k + 1, bytes([k + 1] * 8), False) for k in range(frames)]
     received = []
     spans = []
@@ -239,7 +188,7 @@ def node_cpu_on_socketcan(node_cpu: float, bus: Dict, path: str = 'socketcan_pat
     Estimate the node's CPU on SocketCAN [% of a core] (NaN when a figure is missing).
 
     Its CPU on the test bus, less the test bus's CanIo cost, plus ``path``'s: socketcan_path
-    (python-can, the node's code) or raw_socket (what the frames would cost without it).
+    (the node's code) or socketcan_python_can (through python-can's recv and send).
     """
     try:
         udp = bus['udp_multicast']['cpu_percent']
