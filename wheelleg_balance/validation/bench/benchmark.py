@@ -349,7 +349,7 @@ def print_bus(report: Dict, w) -> None:
     w('\nCAN I/O alone (CanIo at 500 Hz: %d commands out, one reply each in, per tick; a peer '
       'process answers; %.0f s each)\n' % (bus['frames_per_tick'],
                                            report['settings']['duration']))
-    w('  %-34s %18s %26s %16s\n' % ('transport', 'CPU [% of a core]',
+    w('  %-50s %18s %28s %16s\n' % ('transport', 'CPU [% of a core]',
                                     'poll + send mean / p99 [us]', 'echoes per tick'))
     names = {'udp_multicast': "udp_multicast (the node part's)",
              'socketcan_path': 'socketcan_path (the node on SocketCAN)',
@@ -357,7 +357,7 @@ def print_bus(report: Dict, w) -> None:
     for transport in bench_bus.TRANSPORTS:
         r = bus.get(transport)
         if r:
-            w('  %-34s %18s %26s %16s\n' % (
+            w('  %-50s %18s %28s %16s\n' % (
                 names[transport], _fmt(r['cpu_percent'], '%.1f'),
                 '%s / %s' % (_fmt(r['io_mean_us'], '%.0f'), _fmt(r['io_p99_us'], '%.0f')),
                 _fmt(r['per_tick']['rx_echoes'], '%.1f')))
@@ -366,7 +366,7 @@ def print_bus(report: Dict, w) -> None:
     estimates = [(bus.get('node_cpu_on_' + path), label) for path, label in labels]
     if any(v is not None for v, _ in estimates):
         w('  the node on SocketCAN, estimated (node CPU - udp_multicast + that path; not '
-          'measured, no SocketCAN here; not a target): %s\n' % ', '.join(
+          'measured, no SocketCAN here; not a target):\n    %s\n' % ', '.join(
               '%s %s %%' % (label, _fmt(v, '%.1f')) for v, label in estimates))
 
 
