@@ -272,6 +272,24 @@ def test_parse_args_quick_and_parts():
     assert args.output == os.path.join('output', 'benchmark.json')
     with pytest.raises(SystemExit):
         benchmark.parse_args(['--parts', 'core,gpu'])
+    assert benchmark.parse_args([]).bus == 'udp_multicast'
+    assert benchmark.parse_args(['--bus', 'unix_socketcan']).bus == 'unix_socketcan'
+    with pytest.raises(SystemExit):
+        benchmark.parse_args(['--bus', 'socketcan'])   # no SocketCAN to benchmark on here
+
+
+def test_before_param_measures_this_tree_with_other_parameters():
+    args = benchmark.parse_args(['--before-param', 'can.raw_frames:=false'])
+    nut = benchmark.before_node(args)
+    assert nut.tree is None and nut.params == ('can.raw_frames:=false',)
+    assert nut.node_args()[-2:] == ['-p', 'can.raw_frames:=false']
+    assert 'can.raw_frames:=false' in nut.label
+    assert benchmark.before_node(benchmark.parse_args(['--before-tree', '/tmp/x'])).tree == \
+        '/tmp/x'
+    for bad in (['--before-param', 'can.raw_frames'],
+                ['--before-param', 'a:=1', '--before-tree', '/tmp/x']):
+        with pytest.raises(SystemExit):
+            benchmark.parse_args(bad)
 
 
 def test_rounds_alternate_which_tree_goes_first_and_the_median_round_stands():
@@ -301,9 +319,10 @@ def test_rounds_alternate_which_tree_goes_first_and_the_median_round_stands():
 # ------------------------------------------------------------------------------ bus part
 
 def test_socketcan_stand_in_carries_frames_both_ways_without_echoes():
+    from wheelleg_balance.nodes.unix_can import socketcan_pair
     from wheelleg_balance.core.protocols.base import Frame
     from wheelleg_balance.nodes.can_io import CanIo
-    ours, theirs = bench_bus.socketcan_pair()
+    ours, theirs = socketcan_pair()
     a, b = CanIo(ours), CanIo(theirs, raw_frames=False)   # the node's path; python-can's
     try:
         sent = [Frame(0x7FF, bytes(range(8)), False), Frame(0x1ABCDEF, b'\x01\x02\x03', True),

@@ -226,11 +226,11 @@ def test_poll_reads_a_bounded_number_of_frames_per_tick():
 
 # On SocketCAN CanIo reads and writes struct can_frame on python-can's socket itself. No
 # SocketCAN in these kernels: python-can's SocketcanBus on a Unix packet socket stands in
-# (validation/bench/bus.py), and the other end runs python-can's own frame code.
+# (nodes/unix_can.py), and the other end runs python-can's own frame code.
 
 def test_on_socketcan_frames_go_straight_on_the_socket_as_python_can_writes_and_reads_them():
     from wheelleg_balance.core.protocols.base import Frame
-    from wheelleg_balance.validation.bench.bus import socketcan_pair
+    from wheelleg_balance.nodes.unix_can import socketcan_pair
     ours, theirs = socketcan_pair()
     io = CanIo(ours, clock=lambda: 5.0)
     assert io.raw is ours.socket
@@ -269,7 +269,7 @@ def test_on_socketcan_frames_go_straight_on_the_socket_as_python_can_writes_and_
 
 def test_on_socketcan_a_bad_read_or_a_failed_send_is_an_error_text_never_an_exception():
     from wheelleg_balance.core.protocols.base import Frame
-    from wheelleg_balance.validation.bench.bus import socketcan_pair
+    from wheelleg_balance.nodes.unix_can import socketcan_pair
     ours, theirs = socketcan_pair()
     io = CanIo(ours)
     try:
@@ -291,7 +291,7 @@ def test_on_socketcan_a_bad_read_or_a_failed_send_is_an_error_text_never_an_exce
 
 def test_on_socketcan_a_full_socket_buffer_waits_send_timeout_then_is_a_send_error():
     from wheelleg_balance.core.protocols.base import Frame
-    from wheelleg_balance.validation.bench.bus import socketcan_pair
+    from wheelleg_balance.nodes.unix_can import socketcan_pair
     ours, theirs = socketcan_pair()
     io = CanIo(ours, send_timeout=0.001)
     frame = Frame(0x1, bytes(8), False)
@@ -310,7 +310,7 @@ def test_on_socketcan_a_full_socket_buffer_waits_send_timeout_then_is_a_send_err
 
 
 def test_python_cans_own_path_stays_where_it_is_asked_for_or_filters_run_in_python():
-    from wheelleg_balance.validation.bench.bus import socketcan_pair
+    from wheelleg_balance.nodes.unix_can import socketcan_pair
     ours, theirs = socketcan_pair()
     try:
         assert CanIo(ours, raw_frames=False).raw is None

@@ -290,10 +290,11 @@ class CanConfig:
     """The wheel motors' bus, protocol, IDs and directions."""
 
     interface: str = param('socketcan', 'python-can interface: socketcan on the robot, virtual '
-                           '(one process) or udp_multicast (between processes) for tests',
+                           '(one process) or udp_multicast (between processes) for tests, '
+                           'unix_socketcan (SocketcanBus through a hub process) for benchmarks',
                            read_only=RO)
     channel: str = param('can0', 'python-can channel (udp_multicast: the group, e.g. '
-                         '239.74.163.2)', read_only=RO)
+                         "239.74.163.2; unix_socketcan: the hub's socket path)", read_only=RO)
     udp_port: int = param(43113, 'UDP port of the udp_multicast interface (python-can default '
                           '43113)', 1, 65535, read_only=RO)
     protocol: str = param('mit', 'wheel motor protocol: %s' % ' | '.join(PROTOCOL_NAMES),
@@ -307,6 +308,9 @@ class CanConfig:
                                       'the wheel forward, else -1 (mirrored mounting)')
     send_timeout: float = param(0.0005, 'timeout of one bus.send [s]; a send that fails is a '
                                 'fault', 0.0, 0.01, read_only=RO)
+    raw_frames: bool = param(True, 'on SocketCAN, the loop reads and writes struct can_frame '
+                             'on the socket python-can opened (half the CPU of its recv and '
+                             "send); false: python-can's recv and send", read_only=RO)
     bitrate: int = param(1000000, "the bus's bit rate [bit/s] as ip link sets it (the load "
                          'in diagnostics is reckoned from it)', 10000, 1000000, read_only=RO)
     tx_queue_len: int = param(1000, "the interface's txqueuelen [frames] (ip link; SocketCAN's "

@@ -90,8 +90,8 @@ class ControlRunner:
         #: on_stamps: samples whose stamp did not advance the clock (no tick ran on them).
         self.stamps_not_advancing = 0
         clock = (lambda: self.now) if self.on_stamps else time.monotonic
-        self.can = CanIo(bus, cfg.can.send_timeout, clock)
-        self.leg_can = CanIo(leg_bus, cfg.can.send_timeout, clock) \
+        self.can = CanIo(bus, cfg.can.send_timeout, clock, cfg.can.raw_frames)
+        self.leg_can = CanIo(leg_bus, cfg.can.send_timeout, clock, cfg.can.raw_frames) \
             if leg_bus is not None else None
         self.link = link
         self.sensor_link = sensor_link

@@ -272,7 +272,8 @@ def main(argv=None) -> int:
     send_timeout = 0.01
 
     def bus(channel):
-        return CanIo(open_bus(cfg.can.interface, channel, cfg.can.udp_port), send_timeout)
+        return CanIo(open_bus(cfg.can.interface, channel, cfg.can.udp_port), send_timeout,
+                     raw_frames=cfg.can.raw_frames)
     buses = [(bus(cfg.can.channel), wheel_frames)]
     if leg_frames:
         if cfg.legs.channel and cfg.legs.channel != cfg.can.channel:

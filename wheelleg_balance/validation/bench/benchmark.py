@@ -12,7 +12,10 @@ benchmark: does the 2 ms balance loop hold in Python? Everything measured in one
    ``--node-param NAME:=VALUE`` sets a parameter of this tree's node; ``--rounds N`` measures
    the node N times (with a before tree in the order ABBA..., before and after alternating
    which goes first, so a drift of the host's load shows in both alike): every round is in
-   the report, the round of median CPU stands for each tree in the table and the targets;
+   the report, the round of median CPU stands for each tree in the table and the targets.
+   ``--before-param NAME:=VALUE`` makes 'node_before' this tree with those parameters instead;
+   ``--bus unix_socketcan`` runs the node part on python-can's SocketcanBus through a hub
+   (nodes/unix_can.py: the robot's CAN code path) instead of the udp_multicast test bus;
 5. bus: the node's CAN traffic through CanIo alone, on the node part's udp_multicast bus and on
    a python-can SocketcanBus over a Unix socket, both as CanIo runs there and through
    python-can's recv and send, each in its own process (bench/bus.py): what the test bus
@@ -23,7 +26,8 @@ the exit code (1 only when a part could not run). Methods and figures: docs/benc
 
     ros2 run wheelleg_balance benchmark [--duration 60] [--output output/benchmark.json]
         [--quick] [--parts core,floor,baseline,node,bus] [--profile] [--before-tree DIR]
-        [--node-param NAME:=VALUE] [--rounds N]
+        [--node-param NAME:=VALUE] [--rounds N] [--before-param NAME:=VALUE]
+        [--bus udp_multicast|unix_socketcan]
 """
 import argparse
 import datetime
@@ -103,10 +107,12 @@ def run_node(args, env: Dict[str, str], workdir: str,
         floors.append(subprocess.Popen(
             _loop_command('floor', duration, out, args.realtime_priority), env=env))
 
-    extra = bench_node.param_args(args.node_param) if nut.tree is None else []
+    extra = bench_node.param_args(args.node_param) if nut.tree is None and not nut.params \
+        else []
     node = bench_node.run(args.duration, workdir, env, *_can_address(),
                           controller=args.controller, realtime_priority=args.realtime_priority,
-                          extra_node_args=extra, on_window=attach, nut=nut, tag=tag)
+                          extra_node_args=extra, on_window=attach, nut=nut, tag=tag,
+                          interface=args.bus)
     for proc in floors:
         if proc.wait(timeout=120) == 0:
             node['floor_during_node'] = loop_result(out)
@@ -134,9 +140,17 @@ def run_bus(args, env: Dict[str, str], workdir: str) -> Dict:
     return result
 
 
-def before_tree(path: str) -> bench_node.NodeUnderTest:
-    """Describe the node of another source tree (its package must have legs.driven)."""
-    return bench_node.NodeUnderTest(tree=os.path.abspath(path), label=os.path.abspath(path))
+def before_node(args) -> bench_node.NodeUnderTest:
+    """
+    Describe the 'before' node: another tree's, or this one's with ``--before-param``.
+
+    Another source tree's package must have legs.driven.
+    """
+    if args.before_tree:
+        path = os.path.abspath(args.before_tree)
+        return bench_node.NodeUnderTest(tree=path, label=path)
+    return bench_node.NodeUnderTest(params=tuple(args.before_param),
+                                    label='this tree with ' + ' '.join(args.before_param))
 
 
 def _can_address():
@@ -296,9 +310,11 @@ def print_report(report: Dict, out=sys.stdout) -> None:
 def print_node(key: str, node: Dict, w) -> None:
     """Print one node part's latency, processes, threads and own diagnostics."""
     lat = node['latency']
-    w('\n%s (%s, %d motors): latency, sensor sample published -> CAN frame on the bus [us]: '
-      'median %s, p99 %s, p99.9 %s, max %s (%d of %d probes measured, %d lost in stalls)\n' % (
-          key, node.get('tree', ''), node.get('motor_count', 0), _fmt(lat['median_us'], '%.0f'),
+    w('\n%s (%s, %d motors, %s): latency, sensor sample published -> CAN frame on the bus '
+      '[us]: median %s, p99 %s, p99.9 %s, max %s (%d of %d probes measured, %d lost in '
+      'stalls)\n' % (
+          key, node.get('tree', ''), node.get('motor_count', 0),
+          node.get('interface', 'udp_multicast'), _fmt(lat['median_us'], '%.0f'),
           _fmt(lat['p99_us'], '%.0f'), _fmt(lat['p999_us'], '%.0f'),
           _fmt(lat['max_us'], '%.0f'), lat['n'], lat['probes'], lat['lost']))
     w('  processes [%% of a core]: %s\n' % ', '.join(
@@ -402,15 +418,25 @@ def parse_args(argv=None):
     parser.add_argument('--node-param', action='append', default=[], metavar='NAME:=VALUE',
                         help="a parameter of this tree's balance_node (repeatable; not for "
                         'the node of --before-tree), e.g. legs.command_divider:=1')
+    parser.add_argument('--before-param', action='append', default=[], metavar='NAME:=VALUE',
+                        help="measure this tree's node with this parameter (repeatable) as "
+                        'node_before, e.g. can.raw_frames:=false (not with --before-tree)')
+    parser.add_argument('--bus', default='udp_multicast',
+                        choices=('udp_multicast', 'unix_socketcan'),
+                        help="the node part's CAN bus: python-can's udp_multicast (default) or "
+                        "its SocketcanBus through a hub of the run's own (the robot's path)")
     parser.add_argument('--rounds', type=int, default=1,
                         help='measure the node this many times (with --before-tree in ABBA '
                         'order); the round of median CPU is reported for each tree')
     parser.add_argument('--workdir', default=None,
                         help='keep the raw recordings (npz, logs) here instead of a temp dir')
     args = parser.parse_args(argv)
-    bad = [p for p in args.node_param if ':=' not in p]
+    bad = [p for p in args.node_param + args.before_param if ':=' not in p]
     if bad:
-        parser.error('--node-param takes NAME:=VALUE, not %s' % ', '.join(bad))
+        parser.error('--node-param and --before-param take NAME:=VALUE, not %s'
+                     % ', '.join(bad))
+    if args.before_param and args.before_tree:
+        parser.error('--before-param is for this tree: not with --before-tree')
     parts = [p.strip() for p in args.parts.split(',') if p.strip()]
     unknown = set(parts) - set(PARTS)
     if unknown:
@@ -443,6 +469,7 @@ def main(argv=None) -> int:
                      'realtime_priority': args.realtime_priority, 'period_ms': 2.0,
                      'late_threshold_ms': 1.0, 'ros_domain_id': int(env['ROS_DOMAIN_ID']),
                      'before_tree': args.before_tree, 'node_params': args.node_param,
+                     'before_params': args.before_param, 'bus': args.bus,
                      'rounds': args.rounds},
         'errors': {},
     }
@@ -450,15 +477,14 @@ def main(argv=None) -> int:
         'core': lambda: bench_core.run(args.ticks),
         'floor': lambda: run_loop('floor', args.duration, env, workdir, args.realtime_priority),
         'baseline': lambda: run_loop('baseline', args.duration, env, workdir),
-        'node_before': lambda: run_node(args, env, workdir, before_tree(args.before_tree),
-                                        tag='_before'),
+        'node_before': lambda: run_node(args, env, workdir, before_node(args), tag='_before'),
         'node': lambda: run_node(args, env, workdir),
         'bus': lambda: run_bus(args, env, workdir),
     }
     parts = list(args.parts)
     if 'node' in parts:
         k = parts.index('node')
-        parts[k:k + 1] = node_order(args.rounds, bool(args.before_tree))
+        parts[k:k + 1] = node_order(args.rounds, bool(args.before_tree or args.before_param))
     rounds: Dict[str, List[Dict]] = {'node': [], 'node_before': []}
     try:
         for part in parts:
@@ -481,9 +507,8 @@ def main(argv=None) -> int:
                     report[part + '_rounds'] = results
         if args.profile:
             report['profile'] = profile(args, env, workdir)
-            if args.before_tree:
-                report['profile_before'] = profile(args, env, workdir,
-                                                   before_tree(args.before_tree))
+            if args.before_tree or args.before_param:
+                report['profile_before'] = profile(args, env, workdir, before_node(args))
     finally:
         if args.workdir is None:
             shutil.rmtree(workdir, ignore_errors=True)
@@ -541,7 +566,7 @@ def profile(args, env: Dict[str, str], workdir: str,
     duration = min(args.duration, 20.0)
     try:
         bench_node.run(duration, workdir, env, *_can_address(), controller=args.controller,
-                       on_window=attach, tag=tag, nut=nut)
+                       on_window=attach, tag=tag, nut=nut, interface=args.bus)
     except Exception as exc:  # noqa: B902
         return {'error': '%s: %s' % (type(exc).__name__, exc)}
     for r in recorders:

@@ -10,7 +10,7 @@ node's CPU figure can be read for the robot:
 
 - ``udp_multicast``: CanIo on the benchmark's test bus (the node's own code and settings);
 - ``socketcan_path``: CanIo as it runs on SocketCAN, on a python-can ``SocketcanBus`` over a
-  Unix packet socket pair (``UnixSocketcanBus``): the frames straight on the bus's socket;
+  Unix packet socket pair (nodes/unix_can.py): the frames straight on the bus's socket;
 - ``socketcan_python_can``: the same through python-can's own recv and send (select, then
   ``capture_message``; ``build_can_frame``, select, send), CanIo's path before 2026-12-06.
 
@@ -29,19 +29,16 @@ import argparse
 import json
 import math
 import multiprocessing
-import socket
-import threading
 import time
 from typing import Dict
 
 import can
-from can.interfaces.socketcan import constants as sc_constants
-from can.interfaces.socketcan.socketcan import SocketcanBus
 
 from .stats import cpu_percent, proc_cpu_seconds, summary_us
 from ...core.deadline import DeadlineLoop
 from ...core.protocols.base import Frame
 from ...nodes.can_io import CanIo, open_bus
+from ...nodes.unix_can import socketcan_pair
 
 TRANSPORTS = ('udp_multicast', 'socketcan_path', 'socketcan_python_can')
 PERIOD = 0.002
@@ -49,44 +46,6 @@ PERIOD = 0.002
 WARMUP = 2.0
 #: A reply's arbitration ID: the command's plus this (a reply never looks like an echo).
 REPLY_OFFSET = 0x100
-
-
-class UnixSocketcanBus(SocketcanBus):
-    """
-    python-can's SocketcanBus on a Unix packet socket (no CAN in this kernel).
-
-    Its send and receive are SocketcanBus's own: select, then ``capture_message`` (recvmsg
-    with the SO_TIMESTAMPNS time, the 16-byte frame dissected into a Message) to receive;
-    ``build_can_frame``, select for room, send to send. Only the constructor differs, which
-    opens and binds an AF_CAN socket; and the kernel's CAN filter, which passes every frame
-    when none is set, is taken as set. Like a raw CAN socket it never hands back its own frames.
-    """
-
-    def __init__(self, sock: socket.socket):
-        # The attributes SocketcanBus.__init__ sets, on the given socket.
-        self.socket = sock
-        self.channel = 'unix'
-        self.channel_info = 'python-can SocketcanBus on a Unix packet socket'
-        self._bcm_sockets = {}
-        self._is_filtered = False
-        self._task_id = 0
-        self._task_id_guard = threading.Lock()
-        self._can_protocol = can.CanProtocol.CAN_20
-        sock.setsockopt(socket.SOL_SOCKET, sc_constants.SO_TIMESTAMPNS, 1)
-        can.BusABC.__init__(self, channel=self.channel)
-
-    def _apply_filters(self, filters) -> None:
-        # CAN_RAW_FILTER does not exist on a Unix socket; a raw CAN socket with no filter set
-        # passes every frame in the kernel, so python-can filters nothing in Python either.
-        self._is_filtered = True
-
-
-def socketcan_pair():
-    """Return two UnixSocketcanBus ends of one socket pair: (the node's, the motors')."""
-    # SEQPACKET, not DGRAM: a datagram pair queues only net.unix.max_dgram_qlen (10) frames,
-    # which a peer preempted for three ticks would overflow; this one queues by its buffer.
-    a, b = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
-    return UnixSocketcanBus(a), UnixSocketcanBus(b)
 
 
 def answer(bus: can.BusABC, stop) -> None:

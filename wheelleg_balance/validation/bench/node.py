@@ -6,8 +6,10 @@ ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST plus a namespace of its own):
 
 - balance_node as its own process (``python -m wheelleg_balance.nodes.balance_node``, or the
   same module of another source tree: ``NodeUnderTest.tree``) on a ``udp_multicast`` CAN bus
-  with a group and port of its own, ``auto_arm`` true, with its six motors (``legs.driven``)
-  or, for a tree from before the legs, its two wheel motors;
+  with a group and port of its own, or on a ``unix_socketcan`` bus with a hub of its own
+  (nodes/unix_can.py: python-can's SocketcanBus, the robot's code path), ``auto_arm`` true,
+  with its six motors (``legs.driven``) or, for a tree from before the legs, its two wheel
+  motors;
 - a sensor process (``python -m wheelleg_balance.validation.bench.node publisher``) publishing
   ``imu`` at 500 Hz (and, for a node that reads its wheel speeds from them, the wheels'
   ``joint_states``) from core/deadline.DeadlineLoop, with sensor-data QoS. It is publisher-only
@@ -39,12 +41,14 @@ import argparse
 from dataclasses import dataclass
 import math
 import os
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
-from typing import Callable, Dict, List, Optional, Sequence
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -54,6 +58,7 @@ from ...core import realtime
 from ...core.deadline import DeadlineLoop
 from ...core.kinematics import FiveBarLeg
 from ...core.protocols.base import Frame
+from ...nodes import unix_can
 from ...processes import end_process
 from ...sim.motor_emulator import MitMotorBank
 
@@ -93,17 +98,20 @@ class NodeUnderTest:
     motors: 6 (two wheels, four hips: ``legs.driven``, wheel speeds from the wheel motors'
     replies) or 2 (the wheels only); joint_states: the sensor process also publishes the
     wheels' joint_states (a node from before ``wheel_state_source``); tree: a source tree whose
-    wheelleg_balance package runs the node (None: this one); label: its name in reports.
+    wheelleg_balance package runs the node (None: this one); label: its name in reports;
+    params: ``NAME:=VALUE`` parameters of this node.
     """
 
     motors: int = 6
     joint_states: bool = False
     tree: Optional[str] = None
     label: str = 'this tree'
+    params: Tuple[str, ...] = ()
 
     def node_args(self) -> List[str]:
-        """Return the parameters that wire this node to the session's motors."""
-        return ['-p', 'legs.driven:=true'] if self.motors == 6 else []
+        """Return the parameters that wire this node to the session's motors, and its own."""
+        return (['-p', 'legs.driven:=true'] if self.motors == 6 else []) + param_args(
+            self.params)
 
     def env(self, env: Dict[str, str]) -> Dict[str, str]:
         """Return the environment of the node's process (its tree first on the path)."""
@@ -203,18 +211,20 @@ class MotorBus(threading.Thread):
     The robot's motors on the bus: record every frame, answer each as the firmware does.
 
     The motors are sim/motor_emulator.py's (a MitMotorBank): the wheels still, the hips at
-    HIP_ANGLE. The bus is the udp_multicast group ``channel`` on ``port``, or ``bus`` when
-    given (a test's virtual bus). motor_ids: the wheels' IDs, then the hips' if any.
+    HIP_ANGLE. The bus is ``interface``'s ``channel`` (the udp_multicast group, on ``port``;
+    the unix_socketcan hub's path), or ``bus`` when given (a test's virtual bus). motor_ids:
+    the wheels' IDs, then the hips' if any.
     """
 
     def __init__(self, channel: Optional[str] = None, port: int = 43113,
-                 motor_ids: Sequence[int] = WHEEL_IDS, bus=None, priority: int = 0):
+                 motor_ids: Sequence[int] = WHEEL_IDS, bus=None, priority: int = 0,
+                 interface: str = 'udp_multicast'):
         super().__init__(name='bench_motors', daemon=True)
         import can
         from ...nodes.can_io import open_bus
         self._can = can
         self.priority = priority
-        self.bus = bus if bus is not None else open_bus('udp_multicast', channel, port)
+        self.bus = bus if bus is not None else open_bus(interface, channel, port)
         self._inode = self._grow_receive_buffer()
         self._drops = -1
         self.motors = MitMotorBank(motor_ids, DIRECTIONS)
@@ -336,7 +346,7 @@ def udp_drops(inode: Optional[int]) -> int:
 
 
 def run_motors(channel: str, port: int, output: str, motors: int = 2,
-               priority: int = 0) -> None:
+               priority: int = 0, interface: str = 'udp_multicast') -> None:
     """
     Be the motors until SIGINT/SIGTERM, then write the recording to output (.npz).
 
@@ -347,7 +357,8 @@ def run_motors(channel: str, port: int, output: str, motors: int = 2,
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    bus = MotorBus(channel, port, (WHEEL_IDS + HIP_IDS)[:motors], priority=priority)
+    bus = MotorBus(channel, port, (WHEEL_IDS + HIP_IDS)[:motors], priority=priority,
+                   interface=interface)
     bus.start()
     armed = None
     while not stop.wait(0.02):
@@ -547,19 +558,26 @@ class Session:
                  nut: NodeUnderTest = NodeUnderTest(), controller: str = 'ida_pbc',
                  realtime_priority: int = 0, extra_node_args: Sequence[str] = (),
                  node_module: str = NODE_MODULE, tag: str = '', namespace: str = '',
-                 max_duration: float = 3600.0, plant_priority: int = 0):
+                 max_duration: float = 3600.0, plant_priority: int = 0,
+                 interface: str = 'udp_multicast'):
         self.nut = nut
         self.env = env
+        self.interface = interface
+        self.hub: Optional[subprocess.Popen] = None
+        self._hub_dir = None
+        if interface == unix_can.INTERFACE:   # its channel: a hub's path (108 bytes at most)
+            self._hub_dir = tempfile.mkdtemp(prefix='wlb_can_')
+            group = os.path.join(self._hub_dir, 'hub.sock')
         self.group = group
         self.namespace = namespace or '/bench_%d%s' % (os.getpid(), tag)
-        self.hardware_id = 'udp_multicast:' + group
+        self.hardware_id = '%s:%s' % (interface, group)
         self.sensors_npz = os.path.join(workdir, 'sensors%s.npz' % tag)
         self.node_log = os.path.join(workdir, 'balance_node%s.log' % tag)
         self.pub_log = os.path.join(workdir, 'sensors%s.log' % tag)
         self.frames_npz = os.path.join(workdir, 'frames%s.npz' % tag)
         self.node_cmd = [
             sys.executable, '-m', node_module, '--ros-args', '-r', '__ns:=' + self.namespace,
-            '-p', 'can.interface:=udp_multicast', '-p', 'can.channel:=' + group,
+            '-p', 'can.interface:=' + interface, '-p', 'can.channel:=' + group,
             '-p', 'can.udp_port:=%d' % port, '-p', 'auto_arm:=true',
             '-p', 'controller:=' + controller, '-p', 'imu_timeout:=%g' % TIMEOUT,
             '-p', 'joint_state_timeout:=%g' % TIMEOUT, '-p', 'motor_timeout:=%g' % TIMEOUT,
@@ -567,7 +585,8 @@ class Session:
             '-p', 'realtime_priority:=%d' % realtime_priority] + nut.node_args() + list(
                 extra_node_args)
         self.motors_cmd = [sys.executable, '-m', 'wheelleg_balance.validation.bench.node',
-                           'motors', '--channel', group, '--port', str(port), '--output',
+                           'motors', '--interface', interface, '--channel', group,
+                           '--port', str(port), '--output',
                            self.frames_npz, '--motors', str(nut.motors),
                            '--priority', str(plant_priority)]
         self.pub_cmd = [sys.executable, '-m', 'wheelleg_balance.validation.bench.node',
@@ -581,11 +600,19 @@ class Session:
         self.motor_lines: List[str] = []
         self.result: Dict = {'controller': controller, 'realtime_priority': realtime_priority,
                              'tree': nut.label, 'motor_count': nut.motors,
+                             'interface': interface,
                              'command': ' '.join(['python'] + self.node_cmd[1:])}
         self.shutdown_ns: Optional[int] = None
 
     def start(self, timeout: float = 60.0) -> None:
         """Start the motors, the sensors and the node; wait until it commands torque."""
+        if self._hub_dir is not None:
+            self.hub = subprocess.Popen(unix_can.hub_command(self.group), env=self.env,
+                                        stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                        text=True)
+            if self.hub.stdout.readline().strip() != 'ready':
+                raise RuntimeError('the unix_socketcan hub did not start (exit %s)'
+                                   % self.hub.poll())
         self.motors = subprocess.Popen(self.motors_cmd, env=self.env, stdout=subprocess.PIPE,
                                        stderr=subprocess.STDOUT, text=True)
 
@@ -639,9 +666,13 @@ class Session:
         if self.node is not None:
             self.result['node_exit_code'] = stop_process(self.node)
         time.sleep(0.3)
-        for proc in (self.motors, self.pub):
+        for proc in (self.motors, self.pub, self.hub):
             if proc is not None:
                 stop_process(proc)
+        if self.hub is not None:   # 'relayed N frames, dropped M'
+            self.result['hub'] = self.hub.stdout.read().strip()
+        if self._hub_dir is not None:
+            shutil.rmtree(self._hub_dir, ignore_errors=True)
 
     def recording(self) -> Recording:
         """Return what the motor process recorded (after ``stop``)."""
@@ -722,7 +753,7 @@ def run(duration: float, workdir: str, env: Dict[str, str], group: str, port: in
         controller: str = 'ida_pbc', warmup: float = WARMUP, start_timeout: float = 60.0,
         realtime_priority: int = 0, extra_node_args=(), node_module: str = NODE_MODULE,
         on_window: Optional[Callable[[int, float], None]] = None, tag: str = '',
-        nut: NodeUnderTest = NodeUnderTest()) -> Dict:
+        nut: NodeUnderTest = NodeUnderTest(), interface: str = 'udp_multicast') -> Dict:
     """
     Run balance_node with sensors and fake motors, measure ``duration`` s after ``warmup``.
 
@@ -730,11 +761,13 @@ def run(duration: float, workdir: str, env: Dict[str, str], group: str, port: in
     the node's output when it does not start balancing within start_timeout. on_window(pid,
     duration) is called with the control process's pid when the measurement starts (e.g. to
     attach a profiler); node_module lets a variant of the node be measured the same way; tag
-    is appended to the names of the raw files written to workdir; nut: which node, wired how.
+    is appended to the names of the raw files written to workdir; nut: which node, wired how;
+    interface: the bus, udp_multicast (group, port) or unix_socketcan (a hub of its own).
     """
     session = Session(workdir, env, group, port, nut, controller, realtime_priority,
                       extra_node_args, node_module, tag,
-                      max_duration=start_timeout + warmup + duration + 30.0)
+                      max_duration=start_timeout + warmup + duration + 30.0,
+                      interface=interface)
     try:
         session.start(start_timeout)
         time.sleep(warmup)
@@ -788,7 +821,9 @@ def main(argv=None):
     parser.add_argument('--max-duration', type=float, default=600.0, help='publisher: [s]')
     parser.add_argument('--joint-states', action='store_true',
                         help="publisher: the wheels' joint_states too")
-    parser.add_argument('--channel', help='motors: udp_multicast group')
+    parser.add_argument('--interface', default='udp_multicast',
+                        choices=('udp_multicast', 'unix_socketcan'), help='motors: the bus')
+    parser.add_argument('--channel', help="motors: udp_multicast group or the hub's path")
     parser.add_argument('--port', type=int, default=43113, help='motors: UDP port')
     parser.add_argument('--motors', type=int, default=2, choices=(2, 6),
                         help='motors: 2 wheels, or 2 wheels and 4 hips')
@@ -799,7 +834,8 @@ def main(argv=None):
         run_publisher(args.namespace, args.output, args.max_duration, args.joint_states,
                       priority=args.priority)
     else:
-        run_motors(args.channel, args.port, args.output, args.motors, args.priority)
+        run_motors(args.channel, args.port, args.output, args.motors, args.priority,
+                   args.interface)
 
 
 if __name__ == '__main__':

@@ -1,0 +1,103 @@
+"""
+The unix_socketcan test bus (nodes/unix_can.py): python-can's SocketcanBus through a hub.
+
+A frame one member sends reaches every other member and never comes back to its sender, as on
+a CAN bus with raw sockets; members come and go; a hub process starts, serves and ends cleanly.
+"""
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+
+import can
+import pytest
+
+from wheelleg_balance.core.protocols.base import Frame
+from wheelleg_balance.core.protocols.mit import MitProtocol
+from wheelleg_balance.nodes.can_io import CanIo, open_bus
+from wheelleg_balance.nodes.unix_can import Hub, hub_command, INTERFACE, UnixSocketcanBus
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+@pytest.fixture
+def hub():
+    folder = tempfile.mkdtemp(prefix='wlb_can_')   # short: a socket path has 108 bytes
+    hub = Hub(os.path.join(folder, 'hub.sock'))
+    thread = threading.Thread(target=hub.serve, daemon=True)
+    thread.start()
+    yield hub
+    hub.stop()
+    thread.join(5.0)
+    assert not thread.is_alive()
+    assert not os.path.exists(hub.path)   # the hub removed its socket
+    os.rmdir(folder)
+
+
+def test_every_other_member_gets_each_frame_and_the_sender_none(hub):
+    a, b, c = (CanIo(open_bus(INTERFACE, hub.path)) for _ in range(3))
+    try:
+        assert isinstance(a.bus, UnixSocketcanBus) and a.raw is a.bus.socket
+        frames = MitProtocol().torque_frames({1: 0.5, 2: -0.5}) + [
+            Frame(0x1ABCDEF, b'\x01', True)]
+        assert a.send(frames) is None
+        for member in (b, c):
+            got = [member.bus.recv(2.0) for _ in frames]   # python-can's SocketCAN receive
+            assert [(m.arbitration_id, bytes(m.data), m.is_extended_id) for m in got] == [
+                (f.arbitration_id, f.data, f.is_extended_id) for f in frames]
+        assert a.poll([]) == 0 and a.bus.recv(0.05) is None   # no echo
+        # A member leaves: the others go on.
+        c.close()
+        assert b.send([Frame(0x7, bytes(8), False)]) is None
+        msg = a.bus.recv(2.0)
+        assert msg is not None and msg.arbitration_id == 0x7
+        assert hub.frames == 4
+    finally:
+        a.close()
+        b.close()
+        c.close()
+
+
+def test_no_hub_is_a_clear_initialization_error():
+    with pytest.raises(can.CanInitializationError, match='no unix_socketcan hub'):
+        open_bus(INTERFACE, os.path.join(tempfile.gettempdir(), 'wlb-no-hub-%d' % os.getpid()))
+
+
+def test_a_member_that_never_reads_loses_frames_the_others_still_get(hub):
+    sender, deaf, reader = (open_bus(INTERFACE, hub.path) for _ in range(3))
+    try:
+        n = 2000   # far more than a socket buffer of frames
+        for k in range(n):
+            sender.send(can.Message(arbitration_id=k % 0x7FF, data=bytes(8),
+                                    is_extended_id=False))
+            assert reader.recv(2.0).arbitration_id == k % 0x7FF
+        assert hub.dropped > 0   # the deaf member's frames, once its buffer was full
+    finally:
+        for bus in (sender, deaf, reader):
+            bus.shutdown()
+
+
+def test_the_hub_process_serves_and_ends_on_sigterm():
+    folder = tempfile.mkdtemp(prefix='wlb_can_')
+    path = os.path.join(folder, 'hub.sock')
+    env = dict(os.environ)
+    env['PYTHONPATH'] = os.pathsep.join(p for p in (REPO, env.get('PYTHONPATH')) if p)
+    proc = subprocess.Popen(hub_command(path), env=env, stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == 'ready'
+        a, b = open_bus(INTERFACE, path), open_bus(INTERFACE, path)
+        a.send(can.Message(arbitration_id=0x10, data=b'\x02', is_extended_id=False))
+        assert b.recv(5.0).arbitration_id == 0x10
+        a.shutdown()
+        b.shutdown()
+        proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=10)
+        assert proc.returncode == 0 and 'relayed 1 frames' in out
+        assert not os.path.exists(path)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        os.rmdir(folder)
+    assert hub_command(path)[:3] == [sys.executable, '-m', 'wheelleg_balance.nodes.unix_can']
