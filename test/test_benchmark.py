@@ -272,8 +272,8 @@ def test_parse_args_quick_and_parts():
     assert args.output == os.path.join('output', 'benchmark.json')
     with pytest.raises(SystemExit):
         benchmark.parse_args(['--parts', 'core,gpu'])
-    assert benchmark.parse_args([]).bus == 'udp_multicast'
-    assert benchmark.parse_args(['--bus', 'unix_socketcan']).bus == 'unix_socketcan'
+    assert benchmark.parse_args([]).bus == 'unix_socketcan'   # the robot's CAN code path
+    assert benchmark.parse_args(['--bus', 'udp_multicast']).bus == 'udp_multicast'
     with pytest.raises(SystemExit):
         benchmark.parse_args(['--bus', 'socketcan'])   # no SocketCAN to benchmark on here
 

@@ -101,3 +101,20 @@ def test_the_hub_process_serves_and_ends_on_sigterm():
             proc.kill()
         os.rmdir(folder)
     assert hub_command(path)[:3] == [sys.executable, '-m', 'wheelleg_balance.nodes.unix_can']
+
+
+def test_balance_node_balances_on_the_robots_can_code_path(tmp_path):
+    """The whole node (control process, watchdog) on python-can's SocketcanBus via a hub."""
+    from wheelleg_balance.validation import child_env
+    from wheelleg_balance.validation.bench import node as bench_node
+    env = child_env()   # this package first; this run's ROS_DOMAIN_ID (conftest)
+    result = bench_node.run(2.0, str(tmp_path), env, '', 0, warmup=1.0, tag='_unix',
+                            interface=INTERFACE)
+    assert result['interface'] == INTERFACE and result['node_mode'] == 'BALANCING'
+    motors = result['motors']
+    assert len(motors) == 6 and all(m['frames'] > 0 for m in motors.values())
+    assert all(m['balancing_share'] == 1.0 for m in motors.values() if 'balancing_share' in m)
+    # Every motor got its exit frame through the hub when the node ended.
+    assert result['clean_shutdown'] and result['node_exit_code'] == 0
+    assert result['hub'].startswith('relayed ')
+    assert result['hub_cpu_percent'] >= 0.0

@@ -13,13 +13,14 @@ benchmark: does the 2 ms balance loop hold in Python? Everything measured in one
    the node N times (with a before tree in the order ABBA..., before and after alternating
    which goes first, so a drift of the host's load shows in both alike): every round is in
    the report, the round of median CPU stands for each tree in the table and the targets.
-   ``--before-param NAME:=VALUE`` makes 'node_before' this tree with those parameters instead;
-   ``--bus unix_socketcan`` runs the node part on python-can's SocketcanBus through a hub
-   (nodes/unix_can.py: the robot's CAN code path) instead of the udp_multicast test bus;
-5. bus: the node's CAN traffic through CanIo alone, on the node part's udp_multicast bus and on
+   ``--before-param NAME:=VALUE`` makes 'node_before' this tree with those parameters instead.
+   The node part's bus is python-can's SocketcanBus through a hub (nodes/unix_can.py: the
+   robot's CAN code path without SocketCAN in the kernel); ``--bus udp_multicast`` runs it on
+   python-can's udp_multicast test bus instead (the only bus of trees before 2026-12-06);
+5. bus: the node's CAN traffic through CanIo alone, on python-can's udp_multicast bus and on
    a python-can SocketcanBus over a Unix socket, both as CanIo runs there and through
-   python-can's recv and send, each in its own process (bench/bus.py): what the test bus
-   costs, and estimates of the node's CPU on SocketCAN (not targets).
+   python-can's recv and send, each in its own process (bench/bus.py): what each path costs;
+   after a node part on udp_multicast, estimates of the node's CPU on SocketCAN (not targets).
 
 Prints a table and writes a JSON report; the targets are reported pass/fail, they never change
 the exit code (1 only when a part could not run). Methods and figures: docs/benchmarks.md.
@@ -27,7 +28,7 @@ the exit code (1 only when a part could not run). Methods and figures: docs/benc
     ros2 run wheelleg_balance benchmark [--duration 60] [--output output/benchmark.json]
         [--quick] [--parts core,floor,baseline,node,bus] [--profile] [--before-tree DIR]
         [--node-param NAME:=VALUE] [--rounds N] [--before-param NAME:=VALUE]
-        [--bus udp_multicast|unix_socketcan]
+        [--bus unix_socketcan|udp_multicast]
 """
 import argparse
 import datetime
@@ -317,8 +318,10 @@ def print_node(key: str, node: Dict, w) -> None:
           node.get('interface', 'udp_multicast'), _fmt(lat['median_us'], '%.0f'),
           _fmt(lat['p99_us'], '%.0f'), _fmt(lat['p999_us'], '%.0f'),
           _fmt(lat['max_us'], '%.0f'), lat['n'], lat['probes'], lat['lost']))
-    w('  processes [%% of a core]: %s\n' % ', '.join(
-        '%s %.1f' % kv for kv in node.get('processes', {}).items()))
+    w('  processes [%% of a core]: %s%s\n' % (', '.join(
+        '%s %.1f' % kv for kv in node.get('processes', {}).items()),
+        '; the bus hub beside them (not the node) %s' % _fmt(node['hub_cpu_percent'], '%.1f')
+        if 'hub_cpu_percent' in node else ''))
     w('  threads [%% of a core]: %s\n' % ', '.join(
         '%s:%s/%d %.1f' % (t.get('process', ''), t['name'], t['tid'], t['cpu_percent'])
         for t in node['threads']))
@@ -421,10 +424,12 @@ def parse_args(argv=None):
     parser.add_argument('--before-param', action='append', default=[], metavar='NAME:=VALUE',
                         help="measure this tree's node with this parameter (repeatable) as "
                         'node_before, e.g. can.raw_frames:=false (not with --before-tree)')
-    parser.add_argument('--bus', default='udp_multicast',
-                        choices=('udp_multicast', 'unix_socketcan'),
-                        help="the node part's CAN bus: python-can's udp_multicast (default) or "
-                        "its SocketcanBus through a hub of the run's own (the robot's path)")
+    parser.add_argument('--bus', default='unix_socketcan',
+                        choices=('unix_socketcan', 'udp_multicast'),
+                        help="the node part's CAN bus: python-can's SocketcanBus through a hub "
+                        "of the run's own (default: the robot's code path) or its "
+                        'udp_multicast (the bus of the figures before 2026-12-06 and of '
+                        'trees from before then)')
     parser.add_argument('--rounds', type=int, default=1,
                         help='measure the node this many times (with --before-tree in ABBA '
                         'order); the round of median CPU is reported for each tree')
@@ -512,7 +517,7 @@ def main(argv=None) -> int:
     finally:
         if args.workdir is None:
             shutil.rmtree(workdir, ignore_errors=True)
-    if report.get('bus') and report.get('node'):
+    if report.get('bus') and report.get('node') and args.bus == 'udp_multicast':
         for path in ('socketcan_path', 'socketcan_python_can'):
             report['bus']['node_cpu_on_' + path] = bench_bus.node_cpu_on_socketcan(
                 report['node']['cpu_percent'], report['bus'], path)

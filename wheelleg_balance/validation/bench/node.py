@@ -577,8 +577,9 @@ class Session:
         self.frames_npz = os.path.join(workdir, 'frames%s.npz' % tag)
         self.node_cmd = [
             sys.executable, '-m', node_module, '--ros-args', '-r', '__ns:=' + self.namespace,
-            '-p', 'can.interface:=' + interface, '-p', 'can.channel:=' + group,
-            '-p', 'can.udp_port:=%d' % port, '-p', 'auto_arm:=true',
+            '-p', 'can.interface:=' + interface, '-p', 'can.channel:=' + group] + (
+                ['-p', 'can.udp_port:=%d' % port] if interface == 'udp_multicast' else []) + [
+            '-p', 'auto_arm:=true',
             '-p', 'controller:=' + controller, '-p', 'imu_timeout:=%g' % TIMEOUT,
             '-p', 'joint_state_timeout:=%g' % TIMEOUT, '-p', 'motor_timeout:=%g' % TIMEOUT,
             '-p', 'watchdog_timeout:=%g' % TIMEOUT,
@@ -655,6 +656,15 @@ class Session:
     def cpu(self) -> Dict[int, tuple]:
         """{pid: (name, CPU seconds)} of the node's process tree now."""
         return tree_cpu_seconds(self.node.pid)
+
+    def hub_cpu(self) -> float:
+        """CPU seconds of the unix_socketcan hub now (NaN: no hub)."""
+        if self.hub is None:
+            return math.nan
+        try:
+            return proc_cpu_seconds(self.hub.pid)
+        except OSError:
+            return math.nan
 
     def diagnostics(self) -> Dict[str, Dict[str, str]]:
         """Read the node's /diagnostics now."""
@@ -772,6 +782,7 @@ def run(duration: float, workdir: str, env: Dict[str, str], group: str, port: in
         session.start(start_timeout)
         time.sleep(warmup)
         diag0 = session.diagnostics()
+        hub0 = session.hub_cpu()
         t0_ns, cpu0 = time.time_ns(), session.cpu()
         threads0 = {p: thread_cpu_seconds(p) for p in cpu0}
         if on_window is not None:
@@ -780,6 +791,7 @@ def run(duration: float, workdir: str, env: Dict[str, str], group: str, port: in
         time.sleep(duration)
         t1_ns, cpu1 = time.time_ns(), session.cpu()
         wall = (t1_ns - t0_ns) * 1e-9
+        hub_cpu = cpu_percent(hub0, session.hub_cpu(), wall)
         threads = []
         for p in cpu0:
             try:
@@ -794,6 +806,8 @@ def run(duration: float, workdir: str, env: Dict[str, str], group: str, port: in
         session.stop()
     result = session.analyse(t0_ns, t1_ns)
     result.update(cpu_figures(cpu0, cpu1, wall))
+    if session.hub is not None:   # the bus's stand-in for the kernel: not the node's
+        result['hub_cpu_percent'] = hub_cpu
     result['threads'] = sorted(threads, key=lambda r: -r['cpu_percent'])[:8]
     result['node_loop'] = diag.get(LOOP_STATUS, {})
     loop0, loop1 = diag0.get(LOOP_STATUS, {}), diag.get(LOOP_STATUS, {})
