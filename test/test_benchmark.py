@@ -272,7 +272,7 @@ def test_parse_args_quick_and_parts():
     assert args.output == os.path.join('output', 'benchmark.json')
     with pytest.raises(SystemExit):
         benchmark.parse_args(['--parts', 'core,gpu'])
-    assert benchmark.parse_args([]).bus == 'unix_socketcan'   # the robot's CAN code path
+    assert benchmark.parse_args([]).bus == 'socketcan_hub'   # the robot's CAN code path
     assert benchmark.parse_args(['--bus', 'udp_multicast']).bus == 'udp_multicast'
     with pytest.raises(SystemExit):
         benchmark.parse_args(['--bus', 'socketcan'])   # no SocketCAN to benchmark on here
@@ -319,7 +319,7 @@ def test_rounds_alternate_which_tree_goes_first_and_the_median_round_stands():
 # ------------------------------------------------------------------------------ bus part
 
 def test_socketcan_stand_in_carries_frames_both_ways_without_echoes():
-    from wheelleg_balance.nodes.unix_can import socketcan_pair
+    from wheelleg_balance.nodes.socketcan_hub import socketcan_pair
     from wheelleg_balance.core.protocols.base import Frame
     from wheelleg_balance.nodes.can_io import CanIo
     ours, theirs = socketcan_pair()

@@ -225,12 +225,20 @@ def test_poll_reads_a_bounded_number_of_frames_per_tick():
 
 
 # On SocketCAN CanIo reads and writes struct can_frame on python-can's socket itself. No
-# SocketCAN in these kernels: python-can's SocketcanBus on a Unix packet socket stands in
-# (nodes/unix_can.py), and the other end runs python-can's own frame code.
+# SocketCAN in these kernels: python-can's SocketcanBus on another socket stands in
+# (nodes/socketcan_hub.py), and the other end runs python-can's own frame code.
+
+def _packet_pair():
+    """Return SocketcanBus ends of a Unix packet socket pair (a buffer that fills, EPIPE)."""
+    import socket
+    from wheelleg_balance.nodes.socketcan_hub import HubSocketcanBus
+    a, b = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    return HubSocketcanBus(a), HubSocketcanBus(b)
+
 
 def test_on_socketcan_frames_go_straight_on_the_socket_as_python_can_writes_and_reads_them():
     from wheelleg_balance.core.protocols.base import Frame
-    from wheelleg_balance.nodes.unix_can import socketcan_pair
+    from wheelleg_balance.nodes.socketcan_hub import socketcan_pair
     ours, theirs = socketcan_pair()
     io = CanIo(ours, clock=lambda: 5.0)
     assert io.raw is ours.socket
@@ -269,8 +277,7 @@ def test_on_socketcan_frames_go_straight_on_the_socket_as_python_can_writes_and_
 
 def test_on_socketcan_a_bad_read_or_a_failed_send_is_an_error_text_never_an_exception():
     from wheelleg_balance.core.protocols.base import Frame
-    from wheelleg_balance.nodes.unix_can import socketcan_pair
-    ours, theirs = socketcan_pair()
+    ours, theirs = _packet_pair()
     io = CanIo(ours)
     try:
         theirs.socket.send(b'\x01\x02\x03')   # no struct can_frame
@@ -291,8 +298,7 @@ def test_on_socketcan_a_bad_read_or_a_failed_send_is_an_error_text_never_an_exce
 
 def test_on_socketcan_a_full_socket_buffer_waits_send_timeout_then_is_a_send_error():
     from wheelleg_balance.core.protocols.base import Frame
-    from wheelleg_balance.nodes.unix_can import socketcan_pair
-    ours, theirs = socketcan_pair()
+    ours, theirs = _packet_pair()
     io = CanIo(ours, send_timeout=0.001)
     frame = Frame(0x1, bytes(8), False)
     try:
@@ -310,7 +316,7 @@ def test_on_socketcan_a_full_socket_buffer_waits_send_timeout_then_is_a_send_err
 
 
 def test_python_cans_own_path_stays_where_it_is_asked_for_or_filters_run_in_python():
-    from wheelleg_balance.nodes.unix_can import socketcan_pair
+    from wheelleg_balance.nodes.socketcan_hub import socketcan_pair
     ours, theirs = socketcan_pair()
     try:
         assert CanIo(ours, raw_frames=False).raw is None

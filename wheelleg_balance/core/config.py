@@ -291,10 +291,10 @@ class CanConfig:
 
     interface: str = param('socketcan', 'python-can interface: socketcan on the robot, virtual '
                            '(one process) or udp_multicast (between processes) for tests, '
-                           'unix_socketcan (SocketcanBus through a hub process) for benchmarks',
+                           'socketcan_hub (SocketcanBus through a hub process) for benchmarks',
                            read_only=RO)
     channel: str = param('can0', 'python-can channel (udp_multicast: the group, e.g. '
-                         "239.74.163.2; unix_socketcan: the hub's socket path)", read_only=RO)
+                         "239.74.163.2; socketcan_hub: the hub's 127.0.0.1:PORT)", read_only=RO)
     udp_port: int = param(43113, 'UDP port of the udp_multicast interface (python-can default '
                           '43113)', 1, 65535, read_only=RO)
     protocol: str = param('mit', 'wheel motor protocol: %s' % ' | '.join(PROTOCOL_NAMES),

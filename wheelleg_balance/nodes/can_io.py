@@ -34,7 +34,7 @@ import can
 from can.interfaces.socketcan import SocketcanBus
 from can.interfaces.udp_multicast import UdpMulticastBus
 
-from . import unix_can
+from . import socketcan_hub
 from ..core.can_budget import frame_bits
 from ..core.protocols.base import Frame
 
@@ -90,11 +90,11 @@ def open_bus(interface: str, channel: str, udp_port: int = 43113) -> can.BusABC:
     concurrent test runs apart, since a socket bound to the port sees every joined group).
     The udp_multicast test bus never leaves the machine: hop limit (TTL) 0, so its frames
     reach only this host's sockets (python-can's default, 1, would put them on the LAN).
-    ``unix_socketcan`` (channel = a hub's socket path): python-can's SocketcanBus between
-    processes without SocketCAN, for benchmarks and tests (nodes/unix_can.py).
+    ``socketcan_hub`` (channel = the hub's '127.0.0.1:PORT'): python-can's SocketcanBus
+    between processes without SocketCAN, for benchmarks and tests (nodes/socketcan_hub.py).
     """
-    if interface == unix_can.INTERFACE:
-        return unix_can.UnixSocketcanBus.connect(channel)
+    if interface == socketcan_hub.INTERFACE:
+        return socketcan_hub.HubSocketcanBus.join(channel)
     if interface == 'udp_multicast':
         return can.Bus(interface=interface, channel=channel, port=udp_port,
                        hop_limit=UDP_HOP_LIMIT)

@@ -14,11 +14,11 @@ benchmark: does the 2 ms balance loop hold in Python? Everything measured in one
    which goes first, so a drift of the host's load shows in both alike): every round is in
    the report, the round of median CPU stands for each tree in the table and the targets.
    ``--before-param NAME:=VALUE`` makes 'node_before' this tree with those parameters instead.
-   The node part's bus is python-can's SocketcanBus through a hub (nodes/unix_can.py: the
+   The node part's bus is python-can's SocketcanBus through a hub (nodes/socketcan_hub.py: the
    robot's CAN code path without SocketCAN in the kernel); ``--bus udp_multicast`` runs it on
    python-can's udp_multicast test bus instead (the only bus of trees before 2026-12-06);
 5. bus: the node's CAN traffic through CanIo alone, on python-can's udp_multicast bus and on
-   a python-can SocketcanBus over a Unix socket, both as CanIo runs there and through
+   a python-can SocketcanBus over loopback UDP, both as CanIo runs there and through
    python-can's recv and send, each in its own process (bench/bus.py): what each path costs;
    after a node part on udp_multicast, estimates of the node's CPU on SocketCAN (not targets).
 
@@ -28,7 +28,7 @@ the exit code (1 only when a part could not run). Methods and figures: docs/benc
     ros2 run wheelleg_balance benchmark [--duration 60] [--output output/benchmark.json]
         [--quick] [--parts core,floor,baseline,node,bus] [--profile] [--before-tree DIR]
         [--node-param NAME:=VALUE] [--rounds N] [--before-param NAME:=VALUE]
-        [--bus unix_socketcan|udp_multicast]
+        [--bus socketcan_hub|udp_multicast]
 """
 import argparse
 import datetime
@@ -424,8 +424,8 @@ def parse_args(argv=None):
     parser.add_argument('--before-param', action='append', default=[], metavar='NAME:=VALUE',
                         help="measure this tree's node with this parameter (repeatable) as "
                         'node_before, e.g. can.raw_frames:=false (not with --before-tree)')
-    parser.add_argument('--bus', default='unix_socketcan',
-                        choices=('unix_socketcan', 'udp_multicast'),
+    parser.add_argument('--bus', default='socketcan_hub',
+                        choices=('socketcan_hub', 'udp_multicast'),
                         help="the node part's CAN bus: python-can's SocketcanBus through a hub "
                         "of the run's own (default: the robot's code path) or its "
                         'udp_multicast (the bus of the figures before 2026-12-06 and of '

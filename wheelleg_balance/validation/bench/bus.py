@@ -10,7 +10,8 @@ node's CPU figure can be read for the robot:
 
 - ``udp_multicast``: CanIo on the benchmark's test bus (the node's own code and settings);
 - ``socketcan_path``: CanIo as it runs on SocketCAN, on a python-can ``SocketcanBus`` over a
-  Unix packet socket pair (nodes/unix_can.py): the frames straight on the bus's socket;
+  pair of connected loopback UDP sockets (nodes/socketcan_hub.py): the frames straight on the
+  bus's socket;
 - ``socketcan_python_can``: the same through python-can's own recv and send (select, then
   ``capture_message``; ``build_can_frame``, select, send), CanIo's path before 2026-12-06.
 
@@ -38,7 +39,7 @@ from .stats import cpu_percent, proc_cpu_seconds, summary_us
 from ...core.deadline import DeadlineLoop
 from ...core.protocols.base import Frame
 from ...nodes.can_io import CanIo, open_bus
-from ...nodes.unix_can import socketcan_pair
+from ...nodes.socketcan_hub import socketcan_pair
 
 TRANSPORTS = ('udp_multicast', 'socketcan_path', 'socketcan_python_can')
 PERIOD = 0.002

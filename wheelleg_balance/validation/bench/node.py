@@ -6,8 +6,8 @@ ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST plus a namespace of its own):
 
 - balance_node as its own process (``python -m wheelleg_balance.nodes.balance_node``, or the
   same module of another source tree: ``NodeUnderTest.tree``) on a ``udp_multicast`` CAN bus
-  with a group and port of its own, or on a ``unix_socketcan`` bus with a hub of its own
-  (nodes/unix_can.py: python-can's SocketcanBus, the robot's code path), ``auto_arm`` true,
+  with a group and port of its own, or on a ``socketcan_hub`` bus with a hub of its own
+  (nodes/socketcan_hub.py: python-can's SocketcanBus, the robot's code path), ``auto_arm`` true,
   with its six motors (``legs.driven``) or, for a tree from before the legs, its two wheel
   motors;
 - a sensor process (``python -m wheelleg_balance.validation.bench.node publisher``) publishing
@@ -41,11 +41,9 @@ import argparse
 from dataclasses import dataclass
 import math
 import os
-import shutil
 import signal
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 from typing import Callable, Dict, List, Optional, Sequence, Tuple
@@ -58,7 +56,7 @@ from ...core import realtime
 from ...core.deadline import DeadlineLoop
 from ...core.kinematics import FiveBarLeg
 from ...core.protocols.base import Frame
-from ...nodes import unix_can
+from ...nodes import socketcan_hub
 from ...processes import end_process
 from ...sim.motor_emulator import MitMotorBank
 
@@ -212,7 +210,7 @@ class MotorBus(threading.Thread):
 
     The motors are sim/motor_emulator.py's (a MitMotorBank): the wheels still, the hips at
     HIP_ANGLE. The bus is ``interface``'s ``channel`` (the udp_multicast group, on ``port``;
-    the unix_socketcan hub's path), or ``bus`` when given (a test's virtual bus). motor_ids:
+    the socketcan_hub hub's address), or ``bus`` when given (a test's virtual bus). motor_ids:
     the wheels' IDs, then the hips' if any.
     """
 
@@ -541,6 +539,8 @@ def read_node_diagnostics(hardware_id: str, timeout: float = 5.0,
     return found
 
 
+#: The socketcan_hub channel in a Session's commands until its hub runs and tells its address.
+HUB_ADDRESS = '<hub address>'
 LOOP_STATUS = 'balance_node: control loop'
 SAFETY_STATUS = 'balance_node: safety'
 
@@ -564,10 +564,8 @@ class Session:
         self.env = env
         self.interface = interface
         self.hub: Optional[subprocess.Popen] = None
-        self._hub_dir = None
-        if interface == unix_can.INTERFACE:   # its channel: a hub's path (108 bytes at most)
-            self._hub_dir = tempfile.mkdtemp(prefix='wlb_can_')
-            group = os.path.join(self._hub_dir, 'hub.sock')
+        if interface == socketcan_hub.INTERFACE:   # its channel: the hub's, once it runs
+            group = HUB_ADDRESS
         self.group = group
         self.namespace = namespace or '/bench_%d%s' % (os.getpid(), tag)
         self.hardware_id = '%s:%s' % (interface, group)
@@ -607,13 +605,8 @@ class Session:
 
     def start(self, timeout: float = 60.0) -> None:
         """Start the motors, the sensors and the node; wait until it commands torque."""
-        if self._hub_dir is not None:
-            self.hub = subprocess.Popen(unix_can.hub_command(self.group), env=self.env,
-                                        stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                        text=True)
-            if self.hub.stdout.readline().strip() != 'ready':
-                raise RuntimeError('the unix_socketcan hub did not start (exit %s)'
-                                   % self.hub.poll())
+        if self.interface == socketcan_hub.INTERFACE:
+            self._start_hub()
         self.motors = subprocess.Popen(self.motors_cmd, env=self.env, stdout=subprocess.PIPE,
                                        stderr=subprocess.STDOUT, text=True)
 
@@ -647,6 +640,22 @@ class Session:
                 break
         self.pub.send_signal(signal.SIGUSR1)
 
+    def _start_hub(self) -> None:
+        # The hub picks a free port and prints it ('ready 127.0.0.1:PORT'): the channel of
+        # the node and the motors.
+        self.hub = subprocess.Popen(socketcan_hub.hub_command(), env=self.env,
+                                    stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        words = self.hub.stdout.readline().split()
+        if len(words) != 2 or words[0] != 'ready':
+            raise RuntimeError('the socketcan_hub hub did not start (exit %s): %s'
+                               % (self.hub.poll(), ' '.join(words)))
+        address = words[1]
+        self.node_cmd = [a.replace(HUB_ADDRESS, address) for a in self.node_cmd]
+        self.motors_cmd = [a.replace(HUB_ADDRESS, address) for a in self.motors_cmd]
+        self.group = address
+        self.hardware_id = '%s:%s' % (self.interface, address)
+        self.result['command'] = ' '.join(['python'] + self.node_cmd[1:])
+
     @property
     def alive(self) -> bool:
         """Return True while the node, sensor and motor processes all run."""
@@ -658,7 +667,7 @@ class Session:
         return tree_cpu_seconds(self.node.pid)
 
     def hub_cpu(self) -> float:
-        """CPU seconds of the unix_socketcan hub now (NaN: no hub)."""
+        """CPU seconds of the socketcan_hub hub now (NaN: no hub)."""
         if self.hub is None:
             return math.nan
         try:
@@ -681,8 +690,6 @@ class Session:
                 stop_process(proc)
         if self.hub is not None:   # 'relayed N frames, dropped M'
             self.result['hub'] = self.hub.stdout.read().strip()
-        if self._hub_dir is not None:
-            shutil.rmtree(self._hub_dir, ignore_errors=True)
 
     def recording(self) -> Recording:
         """Return what the motor process recorded (after ``stop``)."""
@@ -772,7 +779,7 @@ def run(duration: float, workdir: str, env: Dict[str, str], group: str, port: in
     duration) is called with the control process's pid when the measurement starts (e.g. to
     attach a profiler); node_module lets a variant of the node be measured the same way; tag
     is appended to the names of the raw files written to workdir; nut: which node, wired how;
-    interface: the bus, udp_multicast (group, port) or unix_socketcan (a hub of its own).
+    interface: the bus, udp_multicast (group, port) or socketcan_hub (a hub of its own).
     """
     session = Session(workdir, env, group, port, nut, controller, realtime_priority,
                       extra_node_args, node_module, tag,
@@ -836,8 +843,9 @@ def main(argv=None):
     parser.add_argument('--joint-states', action='store_true',
                         help="publisher: the wheels' joint_states too")
     parser.add_argument('--interface', default='udp_multicast',
-                        choices=('udp_multicast', 'unix_socketcan'), help='motors: the bus')
-    parser.add_argument('--channel', help="motors: udp_multicast group or the hub's path")
+                        choices=('udp_multicast', socketcan_hub.INTERFACE),
+                        help='motors: the bus')
+    parser.add_argument('--channel', help="motors: udp_multicast group or the hub's address")
     parser.add_argument('--port', type=int, default=43113, help='motors: UDP port')
     parser.add_argument('--motors', type=int, default=2, choices=(2, 6),
                         help='motors: 2 wheels, or 2 wheels and 4 hips')
