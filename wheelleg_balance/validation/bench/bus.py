@@ -1,14 +1,13 @@
 """
 The benchmark's bus part: what the node's CAN traffic costs in CanIo alone, per transport.
 
-The node part runs the node on python-can's ``udp_multicast`` bus, the only bus between
-processes in a kernel without SocketCAN. Every frame then goes through msgpack and a UDP
-datagram, and the bus hands the node each of its own frames back (nodes/can_io.py drops these
-echoes only after python-can has decoded them). The robot's bus is SocketCAN: a 16-byte
-``struct can_frame`` per frame and no echoes. This part measures the difference, so that the
-node's CPU figure can be read for the robot:
+On python-can's ``udp_multicast`` bus (between processes, in a kernel without SocketCAN) every
+frame goes through msgpack and a UDP datagram, and the bus hands the node each of its own
+frames back (nodes/can_io.py drops these echoes only after python-can has decoded them). The
+robot's bus is SocketCAN: a 16-byte ``struct can_frame`` per frame and no echoes. This part
+measures each path alone, so that a node figure can be read for another bus:
 
-- ``udp_multicast``: CanIo on the benchmark's test bus (the node's own code and settings);
+- ``udp_multicast``: CanIo on python-can's test bus (the node's own code and settings);
 - ``socketcan_path``: CanIo as it runs on SocketCAN, on a python-can ``SocketcanBus`` over a
   pair of connected loopback UDP sockets (nodes/socketcan_hub.py): the frames straight on the
   bus's socket;
@@ -17,13 +16,14 @@ node's CPU figure can be read for the robot:
 
 The kernel's CAN stack (the driver, the TX queue) is in neither SocketCAN figure; the Python
 side of every frame is.
+
 Each transport runs in its own process: a DeadlineLoop at 2 ms (core/deadline.py, the node's
 loop) polls the replies and sends the node's commands of one tick (``frames`` frames; the
 six-motor node with its legs taking turns sends four); a peer process answers each command
 with one 8-byte reply, as the motors do. The figures: the process's CPU [% of a core], the
 wall time of poll + send per tick, frames and echoes per tick.
 
-    python -m wheelleg_balance.validation.bench.bus udp_multicast|socketcan_path
+    python -m wheelleg_balance.validation.bench.bus TRANSPORT  # one of TRANSPORTS
         --duration S --frames N --output F.json [--group G --port P] [--warmup S]
 """
 import argparse
