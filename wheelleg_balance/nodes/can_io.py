@@ -32,6 +32,7 @@ from typing import Callable, Iterable, List, Optional, Tuple
 
 import can
 from can.interfaces.socketcan import SocketcanBus
+from can.interfaces.socketcan.constants import CAN_EFF_FLAG, CAN_ERR_FLAG, CAN_RTR_FLAG
 from can.interfaces.udp_multicast import UdpMulticastBus
 
 from . import socketcan_hub
@@ -49,12 +50,11 @@ def hands_back_own_frames(bus: can.BusABC) -> bool:
     return isinstance(bus, UdpMulticastBus) or bool(getattr(bus, 'receive_own_messages', False))
 
 
-#: struct can_frame of <linux/can.h>: can_id with the EFF/RTR/ERR flags, len, two pad bytes and
-#: len8_dlc, data[8] (the layout of python-can's build_can_frame and capture_message).
+#: struct can_frame of <linux/can.h>: can_id with the EFF/RTR/ERR flags (python-can's
+#: socketcan constants), len, two pad bytes and len8_dlc, data[8] (the layout of python-can's
+#: build_can_frame and capture_message).
 CAN_FRAME = struct.Struct('=IB3x8s')
-CAN_EFF_FLAG = 0x80000000
-CAN_RTR_FLAG = 0x40000000
-CAN_ERR_FLAG = 0x20000000
+#: The identifier bits of an extended and of a standard can_id (<linux/can.h>).
 CAN_EFF_MASK = 0x1FFFFFFF
 CAN_SFF_MASK = 0x7FF
 
@@ -213,12 +213,10 @@ class CanIo:
                     if can_id & (CAN_ERR_FLAG | CAN_RTR_FLAG):
                         continue   # counted and dropped, as on python-can's path
                     length = min(length, 8)
-                    if can_id & CAN_EFF_FLAG:
-                        bits += frame_bits(length, True)
-                        into.append((now, Frame(can_id & CAN_EFF_MASK, data[:length], True)))
-                    else:
-                        bits += frame_bits(length, False)
-                        into.append((now, Frame(can_id & CAN_SFF_MASK, data[:length], False)))
+                    extended = bool(can_id & CAN_EFF_FLAG)
+                    bits += frame_bits(length, extended)
+                    into.append((now, Frame(can_id & (CAN_EFF_MASK if extended else CAN_SFF_MASK),
+                                            data[:length], extended)))
             except OSError as exc:
                 self.rx_errors += 1
                 self.last_rx_error = _os_error_text('receive', exc)
