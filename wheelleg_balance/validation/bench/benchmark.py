@@ -6,7 +6,7 @@ benchmark: does the 2 ms balance loop hold in Python? Everything measured in one
 2. floor: a bare Python loop sleeping to absolute 2 ms deadlines, in its own process;
 3. baseline: a bare rclpy node with an empty 2 ms timer, in its own process;
 4. node: balance_node (its ROS shell, control process and sensor intake) with imu at 500 Hz
-   from another process and its six motors emulated on a udp_multicast CAN bus; its frames,
+   from another process and its six motors emulated on a CAN bus (below); its frames,
    CPU, compute time and latency. ``--before-tree DIR`` measures the node of another source
    tree (a checkout of an earlier commit) the same way in the same run ('node_before');
    ``--node-param NAME:=VALUE`` sets a parameter of this tree's node; ``--rounds N`` measures
@@ -431,7 +431,7 @@ def parse_args(argv=None):
                         'udp_multicast (the bus of the figures before 2026-12-06 and of '
                         'trees from before then)')
     parser.add_argument('--rounds', type=int, default=1,
-                        help='measure the node this many times (with --before-tree in ABBA '
+                        help='measure the node this many times (with a before node in ABBA '
                         'order); the round of median CPU is reported for each tree')
     parser.add_argument('--workdir', default=None,
                         help='keep the raw recordings (npz, logs) here instead of a temp dir')
@@ -538,7 +538,7 @@ def node_order(rounds: int, before: bool) -> List[str]:
     """
     Return the node parts to run: 'node' ``rounds`` times, each with 'node_before' if asked.
 
-    With a before tree the rounds alternate which tree goes first (before, after, after,
+    With a before node the rounds alternate which goes first (before, after, after,
     before, ...): a load that rises or falls through the run then weighs on both alike.
     """
     if not before:
