@@ -72,7 +72,7 @@ def run_io(transport: str, duration: float, frames: int = 4, group: str = '239.7
         ours, theirs = socketcan_pair()
     ctx = multiprocessing.get_context('fork')   # the peer inherits its end of the pair
     stop = ctx.Event()
-    peer = ctx.Process(target=_peer, args=(transport, theirs, group, port, stop), daemon=True)
+    peer = ctx.Process(target=_peer, args=(theirs, group, port, stop), daemon=True)
     peer.start()
     if theirs is not None:
         theirs.shutdown()   # the peer's end, in this process (the peer has its own copy)
@@ -133,7 +133,7 @@ def run_io(transport: str, duration: float, frames: int = 4, group: str = '239.7
             'per_tick': per_tick, 'send_error': window.get('send_error', '')}
 
 
-def _peer(transport: str, theirs, group: str, port: int, stop) -> None:
+def _peer(theirs, group: str, port: int, stop) -> None:
     bus = open_bus('udp_multicast', group, port) if theirs is None else theirs
     answer(bus, stop)
 
