@@ -269,3 +269,30 @@ def test_a_gap_before_arming_is_no_loop_stall_but_one_while_balancing_is():
     bench.tick()
     assert bench.mode == MODE['FAULT']
     assert 'loop_stall' in [c for c, _ in bench.safety_values()['faults']]
+
+
+class _Running:
+    """A stand-in for the watchdog's process that runs until told it has exited."""
+
+    returncode = None
+
+    def poll(self):
+        return self.returncode
+
+
+def test_balance_node_waits_until_the_watchdog_has_started_even_if_it_fired_already():
+    """CI, 2026-12-06: the loop armed and was killed before the shell polled: not a failure."""
+    dog = wd.WatchdogProcess(TIMEOUT)
+    dog.process = _Running()
+    try:
+        for state in (wd.WATCHING, wd.FIRED_DIED, wd.FIRED_STALL, wd.ENDED_CLEAN):
+            dog.heartbeat.set_state(state)
+            dog.wait(time.monotonic() + 1.0)   # returns: it has started
+        dog.heartbeat.set_state(wd.STARTING)
+        with pytest.raises(RuntimeError, match='did not start'):
+            dog.wait(time.monotonic() + 0.05)   # still starting when the time is up
+        dog.process.returncode = 1
+        with pytest.raises(RuntimeError, match=r'exit code 1'):
+            dog.wait(time.monotonic() + 5.0)    # its process ended while starting
+    finally:
+        dog.heartbeat.close()
