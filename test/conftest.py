@@ -36,3 +36,37 @@ def context():
     rclpy.init(context=ctx)
     yield ctx
     rclpy.try_shutdown(context=ctx)
+
+
+class FaultRetries:
+    """The fault suite's scenario runs and reruns in this test run (test/test_faults.py)."""
+
+    def __init__(self):
+        self.runs = 0
+        self.reruns = []   # (scenario, why)
+
+    def ran(self, name: str) -> None:
+        self.runs += 1
+
+    def retried(self, name: str, why: str) -> None:
+        self.reruns.append((name, why))
+
+
+_FAULT_RETRIES = FaultRetries()
+
+
+@pytest.fixture(scope='session')
+def fault_retries() -> FaultRetries:
+    """Return the record of the fault suite's reruns, which the closing summary reports."""
+    return _FAULT_RETRIES
+
+
+def pytest_terminal_summary(terminalreporter):
+    """Close the run with the count of fault-suite reruns (none when none ran)."""
+    r = _FAULT_RETRIES
+    if not r.runs:
+        return
+    terminalreporter.write_sep('=', 'fault suite: %d scenario runs, %d retried'
+                               % (r.runs, len(r.reruns)))
+    for name, why in r.reruns:
+        terminalreporter.write_line('retried %s' % why)

@@ -155,11 +155,35 @@ def test_changes_are_checked_and_leave_the_original_alone():
     assert check(with_changes(DEFAULTS, {'left_leg_front_joint': 'a'})) != []
     # Lockstep with the hips in turns on a bus of their own: sim_node could not tell when a
     # tick's hip commands are in (sim/robot_motors.py commanded).
-    lockstep = {'legs.driven': True, 'clock_source': 'imu_stamp'}
+    lockstep = {'legs.driven': True, 'clock_source': 'imu_stamp',
+                'can.interface': 'udp_multicast'}
     assert check(with_changes(DEFAULTS, lockstep)) == []
     split = dict(lockstep, **{'legs.can.channel': 'legs'})
     assert any('command_divider' in p for p in check(with_changes(DEFAULTS, split)))
     assert check(with_changes(DEFAULTS, dict(split, **{'legs.command_divider': 1}))) == []
+
+
+@pytest.mark.parametrize('interface', ['socketcan', 'pcan', 'slcan', 'kvaser', 'socketcand'])
+def test_the_lockstep_clock_is_refused_on_a_robot_bus(interface):
+    """clock_source imu_stamp only on a test bus: on a robot a dead IMU stops every timeout."""
+    for channel in ('can0', 'vcan0', 'sim', '239.74.163.2'):
+        for legs in ({}, {'legs.driven': True, 'legs.can.channel': 'can1',
+                          'legs.command_divider': 1}):
+            changes = dict(legs, **{'clock_source': 'imu_stamp', 'can.interface': interface,
+                                    'can.channel': channel})
+            found = check(with_changes(DEFAULTS, changes))
+            assert len(found) == 1 and 'clock_source' in found[0] \
+                and repr(interface) in found[0], found
+            # The same bus on the wall clock is the robot's normal set-up.
+            assert check(with_changes(DEFAULTS, dict(changes, clock_source='wall'))) == []
+
+
+@pytest.mark.parametrize('interface', ['virtual', 'udp_multicast', 'socketcan_hub'])
+def test_the_lockstep_clock_runs_on_the_test_buses(interface):
+    changes = {'clock_source': 'imu_stamp', 'can.interface': interface}
+    assert check(with_changes(DEFAULTS, changes)) == []
+    assert DEFAULTS.loop.lockstep_wall_timeout == 1.0   # above sim_node's lockstep_timeout
+    assert DEFAULTS.loop.lockstep_wall_timeout > SimConfig().lockstep_timeout
 
 
 def test_flat_and_nested_names_round_trip():

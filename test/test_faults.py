@@ -19,7 +19,6 @@ import warnings
 import pytest
 
 # conftest.py isolates ROS (domain from the pid, localhost) and provides ``context``.
-from wheelleg_balance.validation.contention import contended
 from wheelleg_balance.validation.faults.bench import (is_zero_torque, LoopBench, make_imu,
                                                       make_joints, MODE)
 from wheelleg_balance.validation.faults.lockstep import scenario_controller_switch
@@ -48,84 +47,93 @@ def scenario_test(name):
     """
     Return a test that runs fault scenario ``name`` and asserts it was handled.
 
-    A failed run is run once more only for lateness the run itself attributes:
-    - its only failed check is a reaction-time bound (the timeout + rig.SLACK), with the
-      reaction there, only late (zero torque on the bus, or ~/state SITTING): a scheduling stall
-      of the loaded 2-core test machine can exceed the slack once (seen: 160.8 ms against 160
-      ms; SITTING 61.4 ms against 60);
-    - or the machine kept tasks from the CPU for much of the run: CPU pressure at least
-      CONTENDED_PRESSURE_PCT or steal time at least CONTENDED_STEAL_PCT (the kernel's counters,
-      validation/contention.py). Seen in CI: every tick 10 to 20 ms late for a minute, one tick's
-      compute 75 ms (0.3 ms normally), the rig's 500 Hz IMU silent 104 ms, so a FAULT nothing
-      injected; a quiet run of this file stays below 41 % (docs/faults.md).
-    Every other failure, and any failure of the second run, fails. Every retry is
-    recorded: a warning in the test report and the junit test-suite property
-    ``<scenario>.retried`` (xunit2, as colcon writes it, has no per-test properties); the
-    figures of every run likewise, ``<scenario>.figures``.
+    A failed run is run once more only for what the run itself attributes (``attributable``):
+    - its only failed checks are reaction-time bounds with the reaction there, at most
+      LATE_MARGIN past the bound: a scheduling stall of the loaded 2-core test machine can
+      exceed the slack once (seen: 160.8 ms against 160 ms; SITTING 61.4 ms against 60);
+    - or the machine kept tasks from the CPU before the fault came: CPU pressure at least
+      CONTENDED_PRESSURE_PCT over the BEFORE_INJECTION seconds before the injection (the
+      kernel's counters, validation/contention.py). Seen in CI: every tick 10 to 20 ms late
+      for a minute, one tick's compute 75 ms (0.3 ms normally), the rig's 500 Hz IMU silent
+      104 ms, so a FAULT nothing injected; a quiet run of this file stays below 41 %.
+    A reaction that never came is never run again, nor any other failure, nor a failure of the
+    second run. Every retry is counted in the run's closing summary (conftest.py), recorded as
+    a warning and as the junit test-suite property ``<scenario>.retried`` (xunit2, as colcon
+    writes it, has no per-test properties); the figures of every run likewise,
+    ``<scenario>.figures``.
     """
-    def test(context, record_testsuite_property):
-        run_scenario(name, context, record_testsuite_property)
+    def test(context, record_testsuite_property, fault_retries):
+        run_scenario(name, context, record_testsuite_property, fault_retries)
     return test
 
 
-def only_late(out):
-    """Whether every failed check of ``out`` is a reaction that came, past its bound."""
-    return bool(out.failures) and all(
-        f.startswith(REACTION_TIME_CHECK) and out.time_to_zero is not None
-        or f.startswith(SITTING_TIME_CHECK) for f in out.failures)
-
-
-def test_only_a_reaction_that_came_late_is_run_once_more():
-    from wheelleg_balance.validation.faults.outcome import Outcome
-
-    def outcome(checks, time_to_zero=None):
-        out = Outcome('x', 'fault', 'expected')
-        for name, ok in checks:
-            out.check(name, ok)
-        out.time_to_zero = time_to_zero
-        return out
-    zero, sit = REACTION_TIME_CHECK + ' 160 ms', SITTING_TIME_CHECK + ' 60 ms'
-    assert only_late(outcome([(zero, False)], 0.161))
-    assert only_late(outcome([(sit, False), ('re-arm refused', True)]))
-    assert not only_late(outcome([(zero, False)]))            # no zero torque at all
-    assert not only_late(outcome([(sit, False), ('re-arm refused', False)]))
-    assert not only_late(outcome([('~/state reports SITTING', False)]))
-    assert not only_late(outcome([(zero, True)], 0.1))         # nothing failed
-
-
-#: CPU pressure [% of the run] from which a failed run is attributed to the machine: a quiet
-#: run of this file measured 0..25 % in-process, 28..41 % with the node as a subprocess.
+#: How far past its bound a reaction may come and still be run once more [s].
+LATE_MARGIN = 0.010
+#: CPU pressure [% of the window before the injection] from which a failed run is attributed
+#: to the machine: quiet runs of this file measured 0..25 % in-process, 28..41 % with the node
+#: as a subprocess (over whole runs, docs/faults.md).
 CONTENDED_PRESSURE_PCT = 60.0
-#: Steal time [% of the CPU time] from which a failed run is attributed to the hypervisor
-#: (quiet runs: 0..17 % per scenario, the hypervisor's other guests come and go).
-CONTENDED_STEAL_PCT = 20.0
+
+
+def missing_reaction(out):
+    """Whether a reaction ``out`` required never came."""
+    return any(elapsed is None for _, elapsed, _ in out.reactions)
+
+
+def only_late(out):
+    """Whether every failed check of ``out`` is a reaction that came, at most LATE_MARGIN late."""
+    late = {text for text, elapsed, bound in out.reactions
+            if elapsed is not None and bound < elapsed <= bound + LATE_MARGIN}
+    return bool(out.failures) and all(f in late for f in out.failures)
 
 
 def attributable(out):
     """Why a failed ``out`` may run once more ('' when it may not): see scenario_test."""
-    if out.handled:
+    if out.handled or missing_reaction(out):
         return ''
     if only_late(out):
-        return 'the reaction came late'
-    if contended(out.figures, CONTENDED_PRESSURE_PCT, CONTENDED_STEAL_PCT):
-        return 'the machine was contended (CPU pressure %s %%, steal %s %%)' % (
-            out.figures.get('cpu_pressure_pct'), out.figures.get('cpu_steal_pct'))
+        return 'the reaction came late by at most %.0f ms' % (1e3 * LATE_MARGIN)
+    pressure = out.figures.get('cpu_pressure_before_pct')
+    if pressure is not None and pressure >= CONTENDED_PRESSURE_PCT:
+        return 'the machine was contended before the injection (CPU pressure %s %%)' % pressure
     return ''
 
 
-def test_a_failure_on_a_contended_machine_is_run_once_more_a_quiet_one_is_not():
-    def failed(**figures):
-        out = Outcome('x', 'fault', 'expected')
-        out.check('still BALANCING', False)
-        out.figures.update(figures)
-        return out
-    assert attributable(failed(cpu_pressure_pct=85.0, cpu_steal_pct=0.0))
-    assert attributable(failed(cpu_pressure_pct=None, cpu_steal_pct=35.0))
-    assert not attributable(failed(cpu_pressure_pct=40.0, cpu_steal_pct=1.0))
-    assert not attributable(failed(cpu_pressure_pct=None, cpu_steal_pct=None))
-    passed = failed(cpu_pressure_pct=99.0)
-    passed.checks[:] = [('still BALANCING', True)]
-    assert not attributable(passed)
+def _outcome(checks=(), reactions=(), **figures):
+    out = Outcome('x', 'fault', 'expected')
+    for text, ok in checks:
+        out.check(text, ok)
+    for text, elapsed, bound in reactions:
+        out.reaction(text, elapsed, bound)
+    out.figures.update(figures)
+    return out
+
+
+def test_only_a_reaction_that_came_at_most_10_ms_late_is_run_once_more():
+    zero, sit = REACTION_TIME_CHECK + ' 160 ms', SITTING_TIME_CHECK + ' 60 ms'
+    assert attributable(_outcome(reactions=[(zero, 0.1608, 0.160)]))
+    assert attributable(_outcome(checks=[('re-arm refused', True)],
+                                 reactions=[(sit, 0.0614, 0.060)]))
+    assert not attributable(_outcome(reactions=[(zero, 0.171, 0.160)]))     # 11 ms late
+    assert not attributable(_outcome(reactions=[(zero, None, 0.160)]))      # never came
+    assert not attributable(_outcome(checks=[('re-arm refused', False)],
+                                     reactions=[(sit, 0.0614, 0.060)]))
+    assert not attributable(_outcome(checks=[('~/state reports SITTING', False)]))
+    assert not attributable(_outcome(reactions=[(zero, 0.1, 0.160)]))      # nothing failed
+
+
+def test_contention_before_the_injection_alone_allows_a_rerun_and_never_a_missing_reaction():
+    failed = [('still BALANCING', False)]
+    assert attributable(_outcome(failed, cpu_pressure_before_pct=85.0))
+    # The pressure over the whole run (the node's reaction included) does not count, nor
+    # steal time, nor a quiet machine, nor an unknown pressure.
+    assert not attributable(_outcome(failed, cpu_pressure_pct=99.0, cpu_steal_pct=35.0,
+                                     cpu_pressure_before_pct=40.0))
+    assert not attributable(_outcome(failed, cpu_pressure_before_pct=None))
+    assert not attributable(_outcome(failed))
+    never = _outcome(failed, [(REACTION_TIME_CHECK + ' 60 ms', None, 0.06)],
+                     cpu_pressure_before_pct=99.0)
+    assert not attributable(never)
 
 
 def test_contention_figures_come_from_the_kernels_counters(tmp_path, monkeypatch):
@@ -150,14 +158,39 @@ def test_contention_figures_come_from_the_kernels_counters(tmp_path, monkeypatch
     assert window.figures()['cpu_pressure_pct'] is None
 
 
-def run_scenario(name, context, record):
-    """Run scenario ``name``, once more only for lateness it attributes (see scenario_test)."""
+def test_the_contention_history_judges_the_window_before_the_injection(tmp_path, monkeypatch):
+    from wheelleg_balance.validation import contention
+    pressure = tmp_path / 'pressure'
+    monkeypatch.setattr(contention, 'PRESSURE', str(pressure))
+    now = [10.0]
+    monkeypatch.setattr(contention.time, 'monotonic', lambda: now[0])
+
+    def at(t, stall_us):
+        now[0] = t
+        pressure.write_text('some avg10=0 avg60=0 avg300=0 total=%d\n' % stall_us)
+    history = contention.CpuHistory()   # not started: the test takes the readings itself
+    at(10.0, 0)
+    history._read()
+    at(12.0, 200_000)                  # 10 % of 2 s
+    history._read()
+    at(14.0, 2_000_000)                # 90 % of the next 2 s (the injection at 14 s)
+    history._read()
+    at(16.0, 2_100_000)                # a quiet 5 % after it
+    assert history.window(12.0, 14.0)['cpu_pressure_pct'] == 90.0
+    assert history.window(10.0, 12.0)['cpu_pressure_pct'] == 10.0
+    assert history.window(14.0, 16.0)['cpu_pressure_pct'] == 5.0
+
+
+def run_scenario(name, context, record, retries):
+    """Run scenario ``name``, once more only for what it attributes (see scenario_test)."""
     out = run_measured(name, context)
     why = attributable(out)
+    retries.ran(name)
     if why:
         text = '%s: %s (%s; figures %s), run once more' % (
             name, why, '; '.join(out.failures), out.figures)
         record('%s.retried' % name, text)
+        retries.retried(name, text)
         warnings.warn(text)
         out = run_measured(name, context)
     record('%s.figures' % name, out.figures)
@@ -359,8 +392,9 @@ def test_fault_latches_until_rearm_even_with_auto_arm(auto_arm_bench, cause):
 
 @pytest.mark.parametrize('name', ['sigint_shutdown', 'sigterm_shutdown', 'sighup_shutdown',
                                   'sigquit_shutdown'])
-def test_signal_sends_zero_torque_then_exit_frames(context, record_testsuite_property, name):
-    run_scenario(name, context, record_testsuite_property)
+def test_signal_sends_zero_torque_then_exit_frames(context, record_testsuite_property,
+                                                   fault_retries, name):
+    run_scenario(name, context, record_testsuite_property, fault_retries)
 
 
 # The watchdog process (nodes/watchdog.py): a control process that stops for good or is killed.
@@ -368,6 +402,9 @@ test_stalled_control_process_is_killed_and_the_watchdog_zeroes_the_motors = \
     scenario_test('control_process_stalled')
 test_killed_control_process_the_watchdog_zeroes_the_motors = \
     scenario_test('control_process_killed')
+# SIGKILL of balance_node itself: its children see it die (PR_SET_PDEATHSIG, the link's EOF).
+test_killed_balance_node_its_control_process_zeroes_the_motors_within_100_ms = \
+    scenario_test('balance_node_killed')
 
 
 def test_zero_applied_after_counts_from_the_sample_to_lasting_zero_torque():

@@ -457,6 +457,7 @@ class SixMotorBench(fb.LoopBench):
             m.feedback = None
         for w in self.loop.wheel_states:
             w.reset()
+        self.loop._foreign_last = None   # nor another sender's commands before it
         self.feed_nominal()
         req = self.request(True)
         self.tick()
@@ -644,6 +645,12 @@ def test_fuzz_hip_motor_replies(six_reply_bench, reply, theta):
         assert abs(snap.wheel_vel_left) <= lim.max_wheel_velocity and \
             abs(snap.wheel_vel_right) <= lim.max_wheel_velocity
     event('%s %s' % ('wheel' if wheel else 'hip', MODE_NAMES[b.mode]))
+    if not accepted and frame.arbitration_id in SIX_IDS and len(raw) == 8:
+        # 8 bytes on a motor's ID, not its reply (byte 0 is not the ID): that motor takes it
+        # for a command, so it is another sender's (issue 29): FAULT input_conflict.
+        event('command of another sender')
+        assert_wheels_zero_now(b, frames)
+        assert 'input_conflict' in [f.code for f in b.loop.supervisor.faults]
     if not accepted:
         event('not a reply')
         return

@@ -273,7 +273,7 @@ def test_every_service_in_the_policy_exists(graph):
 
 def test_balance_node_hands_its_enclave_to_its_sensor_intake():
     """The intake is a participant of its own: it must join balance_node's enclave."""
-    from wheelleg_balance.nodes.sensor_intake import command, enclave_argument
+    from wheelleg_balance.nodes.sensor_intake import arguments, enclave_argument
     assert enclave_argument(['balance_node', '--ros-args', '-r', '__ns:=/r', '--enclave',
                              '/wheelleg/robot']) == '/wheelleg/robot'
     assert enclave_argument(['balance_node', '--ros-args', '-e', '/wheelleg/robot']) == \
@@ -281,5 +281,5 @@ def test_balance_node_hands_its_enclave_to_its_sensor_intake():
     assert enclave_argument(['balance_node', '--enclave', '/x']) == ''   # not a ROS argument
     assert enclave_argument(['balance_node', '--ros-args', '--', '--enclave', '/x']) == ''
     assert enclave_argument(['balance_node']) == ''
-    cmd = command(3, 'balance_node', '/', '/imu', '/joint_states_in', {}, '/wheelleg/robot')
+    cmd = arguments(3, 'balance_node', '/', '/imu', '/joint_states_in', {}, '/wheelleg/robot')
     assert cmd[cmd.index('--enclave') + 1] == '/wheelleg/robot'

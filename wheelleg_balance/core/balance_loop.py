@@ -22,7 +22,9 @@ One tick, in order (docs/architecture.md draws it):
 4. an arm or disarm request, or the one-time ``auto_arm``, is decided by the safety supervisor
    (core/safety.py): arming homes the legs first where their angles are not known, and arms
    only from a plausible pose; a disarm while balancing starts the sit-down sequence;
-5. the supervisor's checks: a commanded mode goes to FAULT on any condition;
+5. the supervisor's checks: a commanded mode goes to FAULT on any condition, and on a command
+   frame to our motors that this node did not send (another sender on the bus, decided by the
+   protocol: ``command_motor_ids``; arming waits until none came for FOREIGN_COMMAND_HOLD);
 6. per mode: HOMING (the legs before balancing): zero wheel torque, the hips' homing ramp where
    their angles are not known yet, then the legs raised on the tail to height_min, the start
    of the paper's start-up (Sec. V-B 1); BALANCING: the reference shaping (core/reference.py)
@@ -45,7 +47,7 @@ from .estimation import WheelOdometry
 from .kinematics import FiveBarLeg
 from .legs import (HeightShaper, HipHoming, HipMotors, HomingConfig, LEFT_LEG, LegController,
                    LegGains, LegState, RIGHT_LEG, RollLeveller, split_heights)
-from .lift import LiftDetector
+from .lift import FREE_FALL, LiftDetector
 from .motor_health import derate, error_reason
 from .motors import MotorSet
 from .pipeline import BalanceCore, CONTROLLER_NAMES, CoreConfig, Measurement, Reference
@@ -53,8 +55,11 @@ from .protocols import make_protocol
 from .protocols.base import Frame, MotorProtocol
 from .protocols.mit import MitProtocol
 from .reference import ReferenceShaper
-from .safety import COMMANDING, INPUT_CONFLICT, LEGS, LIFTED, LOOP_STALL, Mode, MOTOR_ERROR, \
-    MOTOR_REBOOTED, OVER_TEMPERATURE, SafetyLimits, SafetySupervisor, SensorSnapshot
+from .response import MAX_PITCH as RESPONSE_PITCH, ResponseCheck
+from .safety import COMMANDING, IMU_STALE, INPUT_CONFLICT, LEGS, LIFTED, LOOP_STALL, Mode, \
+    MOTOR_ERROR, MOTOR_REBOOTED, OVER_TEMPERATURE, SafetyLimits, SafetySupervisor, SensorSnapshot
+from .safety import ENCODER_MISMATCH
+from .safety import RESPONSE
 from .schema import with_changes
 from .sensors import ImuReader, ImuSample, JointSample, JointStateReader
 from .sit_down import BRAKE, DONE, FOLD, SitDown, SitDownConfig
@@ -104,6 +109,12 @@ class CmdHeight(NamedTuple):
 AUTO_ARM_STEADY = 0.05
 #: The inputs whose conflicts are about the sensors (TickInputs.conflicts): FAULT, no arming.
 SENSOR_INPUTS = ('imu', 'joint_states')
+#: Arming is refused until no command frame from another sender has come for this long [s]:
+#: a script or a second node that commands now and then is still there between its frames.
+FOREIGN_COMMAND_HOLD = 1.0
+#: What a command frame this node did not send most likely is, for a fault or refusal reason.
+ANOTHER_SENDER = ('another sender on the bus (another balance_node, a test script, a second '
+                  'computer?)')
 
 
 @dataclass
@@ -122,6 +133,9 @@ class TickInputs:
     the robot's own (balance_node's graph check, nodes/input_guard.py). A conflict on a sensor
     ('imu', 'joint_states') refuses arming and is a FAULT while commanding; one on a command
     ('cmd_vel', 'cmd_height') drops that command (counted as rejected): it then times out.
+    imu_silent: why the caller's own clock found the IMU silent where the tick's time cannot
+    (on IMU stamps, lockstep: no sample for ``lockstep_wall_timeout`` of wall time, so no
+    tick's time moved): FAULT imu_stale with it while commanding; '' none (an event).
     """
 
     imu: List[ImuSample] = field(default_factory=list)
@@ -134,6 +148,7 @@ class TickInputs:
     params: Dict[str, Any] = field(default_factory=dict)
     guarded: bool = True
     conflicts: Dict[str, str] = field(default_factory=dict)
+    imu_silent: str = ''
 
     def clear(self) -> None:
         """Empty every input (the lists are reused)."""
@@ -145,6 +160,7 @@ class TickInputs:
         self.arm = None
         self.estop = False
         self.params = {}
+        self.imu_silent = ''
 
 
 @dataclass
@@ -445,7 +461,10 @@ class BalanceLoop:
         self.joint_names = joint_names(cfg)
         sc = cfg.safety
         self.lift = LiftDetector(sc.lift_wheel_inertia, sc.lift_window, sc.lift_min_dv,
-                                 sc.lift_ratio, sc.lift_free_time)
+                                 sc.lift_ratio, sc.lift_free_time,
+                                 wheel_radius=self.p.wheel_radius, gravity=self.p.gravity)
+        self.response = ResponseCheck(self.p, sc.response_window, sc.response_min_effect,
+                                      sc.response_gain, sc.response_time)
         self._lift_hold: Optional[Tuple[float, float]] = None   # the legs' heights when lifted
         self._lifted = False   # since the lifted fault, until an arm on the ground
         # Motor health (core/motor_health.py): each motor set with its model's figures.
@@ -460,6 +479,14 @@ class BalanceLoop:
                 motors.speed_limit = 0.9 * min(-motors.protocol.v_min, motors.protocol.v_max)
         #: Why the motors are not fit to arm (errors, reboots, heat), from the newest tick.
         self.motor_problems: List[str] = []
+        #: Command frames to our motors that this node did not send (a second commander): how
+        #: many, the newest's receipt time [s], the motors it addressed, one since the check.
+        self.foreign_commands = 0
+        self._foreign_last: Optional[float] = None
+        self._foreign_motors = ''
+        self._foreign_new = False
+        #: Wheels whose encoder_mismatch was announced (one warn event per wheel and run).
+        self._mismatch_warned: set = set()
         self._configure_live(cfg)
 
     # ----------------------------------------------------------------------- configuration
@@ -488,6 +515,11 @@ class BalanceLoop:
         lift.min_load = sc.lift_min_load * 0.5 * self.p.body_mass * self.p.gravity \
             if self.legs is not None else -math.inf
         lift.unloaded_time = sc.lift_unloaded_time
+        lift.still_window, lift.still_min_dv = sc.lift_still_window, sc.lift_still_min_dv
+        lift.still_ratio = sc.lift_still_ratio
+        resp = self.response
+        resp.window, resp.min_effect = sc.response_window, sc.response_min_effect
+        resp.gain, resp.hold = sc.response_gain, sc.response_time
         self._height = cfg.control.height
         legs = self.legs
         if legs is not None:
@@ -574,11 +606,18 @@ class BalanceLoop:
             r.events.append(('info', 'auto_arm: %s' % self._pending_reply[2]))
         before = sup.mode
         sup.update(now, s, self._reply_times())
+        if self._foreign_new:   # another sender commands our motors: two masters
+            self._foreign_new = False
+            sup.report_fault(now, INPUT_CONFLICT, 'command frames to %s that this node did not '
+                             'send: %s' % (self._foreign_motors, ANOTHER_SENDER))
         if sensor_conflict:   # samples from two sources cannot be trusted
             sup.report_fault(now, INPUT_CONFLICT, sensor_conflict)
+        if inputs.imu_silent:
+            sup.report_fault(now, IMU_STALE, inputs.imu_silent)
         if commanded:   # a gap before arming held no torque of ours
             self._check_stall(now, dt, stall_limit)
-        self._check_lift(now, s, dt)
+        if not self._check_response(now, s, dt):
+            self._check_lift(now, s, dt)
         mode = sup.mode
         if mode is Mode.FAULT and before in COMMANDING:
             self._auto_arm = False
@@ -604,11 +643,14 @@ class BalanceLoop:
         for t, frame in inputs.frames:
             motor = self.motors.on_frame(t, frame)
             if motor is None:
-                if legs is not None:
-                    legs.motors.on_frame(t, frame)
+                if legs is None or legs.motors.on_frame(t, frame) is None:
+                    self._note_foreign(t, frame)
             elif self.from_can:
                 fb = motor.feedback
-                self._wheel_state_of[motor.motor_id].update(fb.position, fb.velocity, t)
+                wheel = self._wheel_state_of[motor.motor_id]
+                wheel.update(fb.position, fb.velocity, t)
+                if wheel.mismatch and motor.motor_id not in self._mismatch_warned:
+                    self._warn_mismatch(motor, wheel)
         cmd = inputs.cmd_vel
         conflicts = inputs.conflicts
         if cmd is not None:
@@ -624,6 +666,59 @@ class BalanceLoop:
                 self._height_target = min(max(float(h), self.p.height_min), self.p.height_max)
             else:
                 self.rejected_cmd_height += 1
+
+    def _note_foreign(self, t: float, frame: Frame) -> None:
+        """Count a frame that commands one of our motors but is none of ours (not a reply)."""
+        for motors, _ in self._health:
+            hit = motors.commanded_motors(frame)
+            if hit:
+                self.foreign_commands += 1
+                self._foreign_last = t
+                self._foreign_motors = ', '.join(_motor_name(m) for m in hit)
+                self._foreign_new = True
+                return
+
+    def _foreign_reason(self, now: float) -> str:
+        """Return why arming is refused for another sender's commands ('' for none lately)."""
+        last = self._foreign_last
+        if last is None or now - last > FOREIGN_COMMAND_HOLD:
+            return ''
+        return ('%s got command frames this node did not send: %s; %d so far, the newest '
+                '%.3f s ago (arming waits until none came for %.1f s)' % (
+                    self._foreign_motors, ANOTHER_SENDER, self.foreign_commands, now - last,
+                    FOREIGN_COMMAND_HOLD))
+
+    def _warn_mismatch(self, motor, wheel: WheelState) -> None:
+        """Announce once per wheel that its replies contradict its speed (encoder_mismatch)."""
+        self._mismatch_warned.add(motor.motor_id)
+        if motor.rebooted is not None:
+            return   # a reboot's jump: motor_rebooted names it (core/motors.py)
+        self._result.events.append(('warn', '%s: %s: %s; %s' % (
+            ENCODER_MISMATCH, _motor_name(motor), wheel.mismatch_reason,
+            self._mismatch_advice())))
+
+    def _mismatch_advice(self) -> str:
+        """Return the likely cause of an encoder_mismatch and its fix, for this configuration."""
+        if self.cfg.wheel_state.position_wraps:
+            return ('likely firmware that saturates the position at +-%g rad instead of '
+                    'wrapping it: set can.mit.wrap: false. The wheel angle is dead-reckoned '
+                    'from the reported speed until the position agrees with it again'
+                    % self.protocol.p_max)
+        return ('with can.mit.wrap: false already: an encoder or reply fault? Check the motor '
+                'and can.mit.p_min / p_max. The wheel angle is dead-reckoned from the reported '
+                'speed until the position agrees with it again')
+
+    def _warnings(self) -> List[Tuple[str, str]]:
+        """Return the warnings (WARNING_CODES) for /diagnostics as (code, message) pairs."""
+        out = []
+        for m, w in zip(self.motors.motors, self.wheel_states):
+            if w.mismatches and m.rebooted is None:   # a reboot's jump: motor_rebooted
+                out.append((ENCODER_MISMATCH, '%s: %s%s' % (
+                    _motor_name(m), w.mismatch_reason,
+                    '; the wheel angle is dead-reckoned from the reported speed' if w.mismatch
+                    else '; %d times since the start, the position agrees with the speed again'
+                    % w.mismatches)))
+        return out
 
     def _read_samples(self, now: float) -> SensorSnapshot:
         s, imu = self._snapshot, self.imu
@@ -686,15 +781,41 @@ class BalanceLoop:
         near_upright = abs(s.theta - self._d_hat) <= self.supervisor.limits.upright_pitch
         load = legs.load() if legs is not None and not self._rising and near_upright \
             and self.supervisor.mode is Mode.BALANCING else math.nan
+        # The still-body rule needs model (1): near upright, the tail off the ground.
         reason = lift.update(now, (st.tau_left, st.tau_right),
                              (s.wheel_vel_left + s.theta_dot, s.wheel_vel_right + s.theta_dot),
-                             dt, load)
+                             dt, load, s.theta_dot if near_upright else math.nan, s.l,
+                             self.imu.specific_force)
         if reason is not None:
             state = legs.state if legs is not None else None
             self._lift_hold = tuple(state.heights) if state is not None and state.valid \
                 else None
             self.supervisor.report_fault(now, LIFTED, reason)
             self._lifted = True
+
+    def _check_response(self, now: float, s: SensorSnapshot, dt: float) -> bool:
+        """
+        Fault when the pitch answers the wheel torque with the wrong sign (core/response.py).
+
+        Judged where model (1) holds: the wheels commanded, near upright (the tail off the
+        ground), not in free fall. Returns True when it faulted.
+        """
+        check = self.response
+        theta = s.theta - self._d_hat
+        falling = self.lift.accel_seen and \
+            self.imu.specific_force < FREE_FALL * self.p.gravity   # False for NaN
+        if not self.supervisor.torque_allowed:
+            check.reset()
+            return False
+        st = self._result.state   # still the torques of the last tick: applied since
+        u = (st.tau_left + st.tau_right) / self.p.wheel_radius
+        reason = check.update(now, theta, s.theta_dot, u, s.l, dt,
+                              judge=abs(theta) <= RESPONSE_PITCH and not falling,
+                              sample=s.imu_time)
+        if reason is None:
+            return False
+        self.supervisor.report_fault(now, RESPONSE, reason)
+        return True
 
     def _estimate_acceleration(self, dt: float) -> None:
         # The robot's own forward acceleration, low-passed (50 ms), for the gravity fallback.
@@ -910,6 +1031,9 @@ class BalanceLoop:
         elif self._silent_motor(now) is not None:
             self._pending_reply = ('refused', False, 'arming refused: %s'
                                    % self._silent_motor(now))
+        elif self._foreign_reason(now):
+            self._pending_reply = ('refused', False, 'arming refused: %s'
+                                   % self._foreign_reason(now))
         elif self.motor_problems:
             self._pending_reply = ('refused', False, 'arming refused: %s'
                                    % '; '.join(self.motor_problems))
@@ -1000,7 +1124,8 @@ class BalanceLoop:
         """Return True when an arm request would be accepted now (for auto_arm)."""
         sup = self.supervisor
         return not sup.check(now, s, self._reply_times()) and sup.pose_problem(s) is None \
-            and self._silent_motor(now) is None and not self.motor_problems
+            and self._silent_motor(now) is None and not self.motor_problems \
+            and not self._foreign_reason(now)
 
     def _silent_motor(self, now: float) -> Optional[str]:
         """Return why a motor is not ready to arm (it must be answering), else None."""
@@ -1197,6 +1322,9 @@ class BalanceLoop:
             'rejected_cmd_vel': self.rejected_cmd_vel,
             'rejected_cmd_height': self.rejected_cmd_height,
             'input_conflicts': self.input_conflicts,
+            'foreign_commands': self.foreign_commands,
+            'foreign_command_reason': self._foreign_reason(now),
+            'warnings': self._warnings(),
             'frozen_imu_samples': self.imu.frozen,
             'refused_imu_stamps': self.imu.refused_stamps,
             'refused_imu_reason': self.imu.refused_reason,

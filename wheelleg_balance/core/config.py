@@ -29,6 +29,9 @@ RO = True
 PROTOCOL_NAMES = tuple(PROTOCOLS)
 #: Values of ``clock_source``: what paces the control loop (nodes/control_process.py).
 CLOCK_SOURCES = ('wall', 'imu_stamp')
+#: The test buses (``can.interface``), the only ones ``clock_source: imu_stamp`` may run on: on
+#: a robot's bus a silent IMU would stop the clock and every timeout with it.
+TEST_INTERFACES = ('virtual', 'udp_multicast', 'socketcan_hub')
 
 
 def _direction(default: int, description: str):
@@ -210,6 +213,27 @@ class SafetyConfig:
                                  'count as unloaded', 0.0, 1.0)
     lift_unloaded_time: float = param(0.05, 'lifted check: legs unloaded this long is a fault '
                                       '[s] (a drop of 1.2 cm takes 50 ms)', 0.01, 1.0)
+    lift_still_window: float = param(0.04, 'lifted check, still body (core/lift.py): window '
+                                     'over which the wheels and the pitch rate are compared '
+                                     '[s]', 0.01, 0.2)
+    lift_still_min_dv: float = param(0.5, "lifted check, still body: a free wheel's speed "
+                                     'change in that window from which it is judged [rad/s]',
+                                     0.1, 50.0)
+    lift_still_ratio: float = param(0.3, 'lifted check, still body: the pitch rate changing by '
+                                    "at most this share of what the wheels' acceleration gives "
+                                    'on the ground (r_w / l) is a body that holds still [-]',
+                                    0.0, 1.0)
+    response_window: float = param(0.05, 'response check (core/response.py): window of the fit '
+                                   "of the pitch's answer to the wheel torque [s]", 0.01, 0.5)
+    response_min_effect: float = param(0.02, 'response check: the torque term of model (1) '
+                                       'must vary by this much in a window to judge it (root '
+                                       'sum of squares about its mean) [rad/s]', 0.001, 1.0)
+    response_gain: float = param(-0.3, 'response check: the pitch answering with less than this '
+                                 "times model (1)'s torque term (1 on the ground, -1 with the "
+                                 'pitch sign or both wheel directions wrong) counts as the '
+                                 'wrong sign [-]', -2.0, 0.5)
+    response_time: float = param(0.05, 'response check: the wrong sign this long is a fault '
+                                 "[s] (MuJoCo's experiments: at most 32 ms)", 0.01, 1.0)
     stamp_tolerance: float = param(0.1, 'an IMU sample stamped ahead of our clock by more than '
                                    'this is refused, as is one whose stamp runs backwards [s] '
                                    '(clocks of two machines that are not synchronized)', 0.0,
@@ -434,8 +458,14 @@ class LoopConfig:
     clock_source: str = param('wall', "what paces the control loop: 'wall' (the robot: every "
                               "control_period on CLOCK_MONOTONIC) or 'imu_stamp' (a simulator "
                               'in lockstep, sim_node lockstep: one tick per IMU sample, its '
-                              'header stamp the time of every timeout; never on a robot)',
+                              'header stamp the time of every timeout; never on a robot: '
+                              'only with can.interface %s)' % ', '.join(TEST_INTERFACES),
                               choices=CLOCK_SOURCES, read_only=RO)
+    lockstep_wall_timeout: float = param(1.0, 'imu_stamp: while the motors are commanded, no '
+                                         'IMU sample for this much wall time is FAULT '
+                                         "imu_stale (above sim_node's lockstep_timeout, 0.5 s); "
+                                         "the watchdog's limit there is this plus "
+                                         'watchdog_timeout [s]', 0.1, 10.0, read_only=RO)
 
 
 @dataclass(frozen=True)
@@ -500,6 +530,12 @@ class BalanceConfig:
         if self.wheel_state.wheel_state_source == 'can' and self.can.protocol != 'mit':
             out.append('wheel_state_source can needs can.protocol mit (wheel speeds from MIT '
                        'replies); use joint_states with %s' % self.can.protocol)
+        if self.loop.clock_source == 'imu_stamp' and self.can.interface not in TEST_INTERFACES:
+            # The hips' bus (legs.can.channel) is opened with can.interface too.
+            out.append('clock_source imu_stamp (lockstep with a simulator) needs a test bus, '
+                       'can.interface %s, not %r: on a robot a silent IMU would stop the clock '
+                       "and every timeout; use clock_source 'wall'"
+                       % (' | '.join(TEST_INTERFACES), self.can.interface))
         if self.legs.driven:
             if set(self.legs.motor_ids) & {self.can.left_motor_id, self.can.right_motor_id} \
                     and not self.legs.channel:
@@ -528,6 +564,8 @@ TIGHTEN_ONLY = {
     'reference.max_acceleration': 1, 'reference.max_yaw_rate': 1,
     'reference.max_yaw_acceleration': 1, 'lift_window': 1, 'lift_min_dv': 1, 'lift_ratio': 1,
     'lift_free_time': 1, 'lift_unloaded_time': 1, 'lift_min_load': -1,
+    'lift_still_window': 1, 'lift_still_min_dv': 1, 'lift_still_ratio': -1,
+    'response_window': 1, 'response_min_effect': 1, 'response_gain': -1, 'response_time': 1,
 }
 
 

@@ -104,6 +104,16 @@ class MotorSet:
         self.rx_replies += 1
         return motor
 
+    def commanded_motors(self, frame: Frame) -> List[Motor]:
+        """
+        Return the motors of this set that a frame commands ([] for every other frame).
+
+        The protocol decides (``command_motor_ids``): a reply is no command.
+        """
+        ids = self.protocol.command_motor_ids(frame)
+        by_id = self.by_id
+        return [by_id[i] for i in ids if i in by_id] if ids else []
+
     def torque_frames(self, torques: Mapping[str, float]) -> List[Frame]:
         """Frames commanding {motor name: joint torque [N m]} (directions applied here)."""
         by_name = self.by_name

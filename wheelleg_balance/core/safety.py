@@ -28,7 +28,7 @@ yaw rate* to zero while the robot keeps balancing.
 from dataclasses import dataclass
 import enum
 import math
-from typing import Mapping, Optional, Tuple
+from typing import Dict, Mapping, NamedTuple, Optional, Tuple
 
 IMU_STALE = 'imu_stale'
 JOINT_STATES_STALE = 'joint_states_stale'
@@ -47,11 +47,130 @@ MOTOR_ERROR = 'motor_error'
 MOTOR_REBOOTED = 'motor_rebooted'
 OVER_TEMPERATURE = 'over_temperature'
 INPUT_CONFLICT = 'input_conflict'
+RESPONSE = 'response'
+#: Not a fault: a wheel's position replies contradict its reported speed (an encoder that
+#: saturates instead of wrapping); the wheel angle is dead-reckoned from the speed, a warning.
+ENCODER_MISMATCH = 'encoder_mismatch'
 
 #: Every fault code, in the order the checks run.
 FAULT_CODES = (IMU_STALE, JOINT_STATES_STALE, NON_FINITE, IMPLAUSIBLE, FALL, ROLL,
                MOTOR_SILENT, CAN_SEND, INTERNAL, LOOP_STALL, LEGS, LIFTED, MOTOR_ERROR,
-               MOTOR_REBOOTED, OVER_TEMPERATURE, INPUT_CONFLICT, POSE)
+               MOTOR_REBOOTED, OVER_TEMPERATURE, INPUT_CONFLICT, RESPONSE, POSE)
+#: Codes of conditions that warn without a FAULT.
+WARNING_CODES = (ENCODER_MISMATCH,)
+
+
+class Reaction(NamedTuple):
+    """One row of the safety table: when a check fires, what the node does, how to get out."""
+
+    detected: str
+    reaction: str
+    recovery: str
+
+
+_FAULT = 'FAULT: zero wheel torque every tick, driven hips damping, diagnostics ERROR'
+_REARM = 'fix the cause, then `~/arm true` (refused while the condition is present)'
+
+#: {code: Reaction} for every code of FAULT_CODES and WARNING_CODES (docs/balance_node.md's
+#: "Safety reactions" table is written from it: validation/interface_doc.py).
+SAFETY_TABLE: Dict[str, Reaction] = {
+    IMU_STALE: Reaction(
+        'the newest IMU sample (receipt time) is older than `imu_timeout`; samples stamped '
+        'ahead of the clock by more than `stamp_tolerance`, running backwards or repeating a '
+        'stamp do not count as new. In lockstep (`clock_source: imu_stamp`): no sample for '
+        '`lockstep_wall_timeout` of wall time',
+        _FAULT, 'restore the IMU stream, then `~/arm true`'),
+    JOINT_STATES_STALE: Reaction(
+        'no reply of a wheel motor (`wheel_state_source: can`), or no wheel joint state on '
+        '`joint_states_in` (`joint_states`), for `joint_state_timeout`',
+        _FAULT, 'restore the replies or the joint states, then `~/arm true`'),
+    NON_FINITE: Reaction(
+        'theta~, theta_dot, a wheel speed or l is NaN or infinite (an orientation that is not '
+        'a unit quaternion; hip angles out of the five-bar reach)', _FAULT, _REARM),
+    IMPLAUSIBLE: Reaction(
+        '|theta_dot| > `max_pitch_rate` or a wheel speed beyond `max_wheel_velocity`: a '
+        'broken sample, never used', _FAULT, _REARM),
+    FALL: Reaction('|theta~| > `fall_angle`', _FAULT + ': the body drops onto its tail',
+                   'put it on its tail or upright, then `~/arm true`'),
+    ROLL: Reaction('|roll| > `fall_roll_angle` (lying on a side)', _FAULT,
+                   'stand it up, then `~/arm true`'),
+    MOTOR_SILENT: Reaction(
+        'a commanded motor has not replied for `motor_timeout`', _FAULT,
+        'power, wiring, ID; re-arm once it answers the zero-torque frames again'),
+    CAN_SEND: Reaction(
+        'a CAN send failed (a full TX queue past `can.send_timeout`, bus-off, an OSError)',
+        _FAULT + '; the zero torque is sent again every tick',
+        're-arm once a send succeeds again'),
+    INTERNAL: Reaction('an exception inside the control tick (a bug)',
+                       _FAULT + '; logged; the loop keeps running',
+                       'report it; `~/arm true`'),
+    LOOP_STALL: Reaction(
+        'a tick came later than the sensor timeouts (`imu_timeout`, `joint_state_timeout`) '
+        'after the one before, while commanding: the loop was blind that long', _FAULT,
+        '`~/arm true`; see `balance_node: control loop` in diagnostics'),
+    LEGS: Reaction(
+        "hip homing failed, the legs' state is invalid (a hip without replies, out of reach) "
+        'or the legs homed but the robot may not arm', _FAULT,
+        'fix the hips (docs/legs.md), then `~/arm true`'),
+    LIFTED: Reaction(
+        'balancing: both wheels speed up as free wheels would from the torque commanded '
+        '(`lift_window`, `lift_min_dv`, `lift_ratio`, `lift_free_time`; one wheel: three '
+        'times as long); or, within 20 deg of upright, they do so by as little as '
+        '`lift_still_min_dv` while the body holds still, its pitch rate changing by less than '
+        "`lift_still_ratio` of what model (1) gives the wheels' acceleration on the ground "
+        '(`lift_still_window`); or the driven legs carry less than `lift_min_load` for '
+        '`lift_unloaded_time`. Not in free fall (specific force below 0.5 g: a hop)',
+        'FAULT: zero wheel torque; driven legs hold their length',
+        '`~/arm true` once on the ground (on the tail, or the driven legs carry weight)'),
+    MOTOR_ERROR: Reaction('a motor reply carries an error code (decoded in the reason)',
+                          _FAULT, 're-arm once the drive clears the code'),
+    MOTOR_REBOOTED: Reaction(
+        "a motor's position jumped by more than `position_jump` (a reboot: its angle is known "
+        'only modulo a rotor turn)', _FAULT + '; latched', 'restart balance_node'),
+    OVER_TEMPERATURE: Reaction(
+        'a motor at `temp_max` (from `temp_derate` on the wheel torque limit is derated)',
+        'balancing: the sit-down; homing: FAULT', 'arming refused until it cools'),
+    INPUT_CONFLICT: Reaction(
+        'a second publisher on `imu` or `joint_states_in` (the ROS graph, every 0.5 s), or '
+        'command frames to our motors that this node did not send (another commander on the '
+        'bus)', _FAULT + '; arming refused while it lasts',
+        'stop the other publisher or sender, then `~/arm true`'),
+    RESPONSE: Reaction(
+        'within 15 deg of upright, the measured change of the pitch rate follows the torque '
+        'term of model (1) with a gain below `response_gain` (a least-squares fit over '
+        '`response_window`) for `response_time`: the pitch answers the wheel torque with the '
+        'wrong sign, a wrong `imu_mounting_rpy` or wheel directions', _FAULT,
+        'fix `imu_mounting_rpy`, `can.left_direction`, `can.right_direction`, then `~/arm true`'),
+    POSE: Reaction('arming from a pose neither on the tail nor upright and still',
+                   'arming refused (not a FAULT)', 'put it on its tail or hold it upright'),
+    ENCODER_MISMATCH: Reaction(
+        "a wheel's position replies contradict its reported speed (an encoder that saturates "
+        'instead of wrapping)', 'warning: the wheel angle is dead-reckoned from the speed',
+        'set `can.mit.wrap: false` for saturating firmware'),
+}
+
+#: Reactions without a fault code of their own (docs/balance_node.md's table, after the codes).
+OTHER_REACTIONS: Dict[str, Reaction] = {
+    'cmd_vel timeout': Reaction(
+        'the newest cmd_vel is older than `cmd_vel_timeout`',
+        'x_dot* and yaw rate* ramp to zero; still balancing', 'send cmd_vel again'),
+    'second commander on cmd_vel / cmd_height': Reaction(
+        'a second publisher on a command topic', 'that command is dropped (WARN), then times '
+        'out; still balancing', 'stop the other publisher'),
+    'control loop stalled or died': Reaction(
+        "the watchdog process: the loop's heartbeat older than `watchdog_timeout` (in "
+        'lockstep `lockstep_wall_timeout` + `watchdog_timeout`) while commanding, or the '
+        'control process gone',
+        'kills the control process; zero torque, then exit motor mode to every motor',
+        'restart balance_node'),
+    'balance_node ends or is killed': Reaction(
+        'SIGINT, SIGTERM, SIGHUP, SIGQUIT; SIGKILL of the node (its children see the parent '
+        'die)', 'zero torque, then exit motor mode to every motor', 'start balance_node'),
+    'disarm': Reaction('`~/arm false`', 'balancing: the sit-down (lower, lean onto the tail), '
+                       'then zero torque and exit motor mode', '`~/arm true`'),
+    'emergency stop': Reaction('`~/stop`', 'zero torque and exit motor mode at once',
+                               '`~/arm true`'),
+}
 
 
 class Mode(enum.IntEnum):

@@ -61,9 +61,12 @@ class ImuReader:
     or from gravity where the orientation is missing (core/attitude.py); theta_dot: the Euler
     pitch rate [rad/s]; gyro: the body-frame angular velocity (x, y, z) [rad/s]; source:
     'orientation', 'gravity' or 'none'. ``frozen`` counts samples dropped for repeating the
-    previous header stamp. mounting: ``imu_mounting_rpy`` [rad]. A sample whose stamp runs
-    backwards, or lies ahead of the node's clock by more than ``stamp_tolerance`` [s], is
-    refused (``refused_stamps``, ``refused_reason``): it goes stale instead of being used.
+    previous header stamp. mounting: ``imu_mounting_rpy`` [rad]. specific_force: the norm of
+    the linear acceleration [m/s^2] (about g at rest, near 0 in free fall; NaN before the
+    first sample and for exact zeros, what a driver without an accelerometer sends). A sample
+    whose stamp runs backwards, or lies ahead of the node's clock by more than
+    ``stamp_tolerance`` [s], is refused (``refused_stamps``, ``refused_reason``): it goes stale
+    instead of being used.
     """
 
     def __init__(self, mounting=(0.0, 0.0, 0.0), gravity: float = 9.81,
@@ -77,6 +80,7 @@ class ImuReader:
         self.gyro = (NAN, NAN, NAN)
         #: Yaw rate about the world vertical from the gyro [rad/s] (attitude.yaw_rate).
         self.yaw_rate = NAN
+        self.specific_force = NAN
         self.source = 'none'
         self.frozen = 0
         self._stamp: Optional[int] = None   # the previous header stamp [ns]
@@ -108,6 +112,8 @@ class ImuReader:
                             0.0 if s.orientation_valid else -1.0, (s.ax, s.ay, s.az),
                             forward_acceleration, gravity=self.gravity)
         self.theta, self.roll, self.source = att.pitch, att.roll, att.source
+        force = math.sqrt(s.ax * s.ax + s.ay * s.ay + s.az * s.az)
+        self.specific_force = force if force > 0.0 else NAN
         self.gyro = self.mounting.vector_to_body((s.wx, s.wy, s.wz))
         self.theta_dot = pitch_rate(self.gyro[1], self.gyro[2], att.roll) \
             if att.roll == att.roll else self.gyro[1]

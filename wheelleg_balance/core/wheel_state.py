@@ -42,11 +42,53 @@ than 12.5 rad (any speed the motor reaches at 2 ms replies; a 0.1 s gap at 50 ra
 fine). Firmware that *saturates* at +-p_max (``wrap=False``) loses the position beyond the
 range: there the angle is dead-reckoned from the speed estimate (its error grows with time,
 ``saturated`` says so) until the reading is back inside the range.
-"""
-import math
-from typing import NamedTuple, Optional
 
+Replies that contradict the reported speed (``mismatch``). Firmware that saturates while the
+node assumes it wraps (``can.mit.wrap: true``, the default) freezes the position at the range
+end: the blend then trusted the frozen position over the speed, read the wheel as standing
+and the robot rolled away (issue 29: 2.4 m/s and rising). Two rules tell it:
+
+- over MISMATCH_WINDOW (50 ms) the position's change and the integral of the reported speed
+  (trapezoid) differ by more than MISMATCH_LIMIT (0.05 rad) plus what the replies' receipt-time
+  uncertainty explains at the speed (core/motor_health.py RECEIPT_JITTER, 12 ms, as the reboot
+  check allows for it; the same allowance covers a speed reading that lags the position by up
+  to 6 ms through a speed reversal, a firmware's velocity filter);
+- the code sits at a range end (0 or 65535) while the reported speed, above two speed codes
+  (STUCK_MIN_SPEED_CODES: 0.05 rad/s) and pointing out of the range, has integrated to more
+  than that same limit since the code got there (catches a slow roll the window cannot: 0.05
+  rad per 50 ms is 1 rad/s).
+
+From then on the angle is dead-reckoned from the reported speed, starting from the angle of
+the reply the contradiction began after (the window's first reply, or the first one at the
+range end), so what the frozen replies said is not kept. The position is trusted again once
+the code is off the range ends and no rule has fired for MISMATCH_WINDOW: the angle then goes
+over to the reading, the whole turns of the code chosen nearest the dead-reckoned angle (its
+error, the speed reading's quantization integrated, at most 12 mrad/s, is far below half the
+range). The speed blend restarts from the reported speed at both changes, so the jump is no
+speed. Neither rule judges across a reply gap longer than ``max_gap`` nor while a speed
+reading is within 10 % of its field's end (there the speed field saturates or wraps, not the
+position), and with ``wrap=False`` a code at the range end is the known saturation, not a
+contradiction. A motor reboot jumps the position in
+one reply and trips the window rule too; core/motors.py (``position_jump``) faults on it, and
+the node names that fault, not this one (core/balance_loop.py). In MuJoCo against saturating
+motors the robot stops within 3 mm of where it does with wrapping ones
+(test/test_encoder_saturation.py; it rolled on at 0.4 to 2.3 m/s before).
+"""
+from collections import deque
+import math
+from typing import NamedTuple, Optional, Tuple
+
+from .motor_health import RECEIPT_JITTER
 from .protocols.mit import MitProtocol
+
+#: The contradiction rules (see the module docstring): the window [s], the limit [rad].
+MISMATCH_WINDOW = 0.05
+MISMATCH_LIMIT = 0.05
+#: A code at a range end judged only while the reported speed is above this many speed codes.
+STUCK_MIN_SPEED_CODES = 2.0
+#: Share of the speed field's end beyond which no rule judges (the speed field, not the
+#: position, saturates or wraps there: core/balance_loop.py's reboot check skips it alike).
+SPEED_FIELD_SHARE = 0.9
 
 
 class WheelReading(NamedTuple):
@@ -56,7 +98,8 @@ class WheelReading(NamedTuple):
     angle [rad] (unwrapped, forward positive, relative to the leg; its zero is the first
     reply's angle); speed [rad/s] (blended); reported_speed [rad/s] (the reply's, centred);
     age [s] of the latest reply at the time asked (inf before the first); saturated: the angle
-    is dead-reckoned because a saturating firmware's reading sits at its range limit.
+    is dead-reckoned because a saturating firmware's reading sits at its range limit;
+    mismatch: the angle is dead-reckoned because the replies contradict the reported speed.
     """
 
     angle: float
@@ -64,6 +107,7 @@ class WheelReading(NamedTuple):
     reported_speed: float
     age: float
     saturated: bool
+    mismatch: bool = False
 
 
 class WheelState:
@@ -92,6 +136,9 @@ class WheelState:
         self.wrap = bool(wrap)
         self._p_min = mit.p_min
         self._p_step = (mit.p_max - mit.p_min) / 65535.0
+        v_code = (mit.v_max - mit.v_min) / 4095.0
+        self._stuck_speed = STUCK_MIN_SPEED_CODES * v_code
+        self._judged_speed = SPEED_FIELD_SHARE * min(-mit.v_min, mit.v_max)
         self._v_half = 0.5 * (mit.v_max - mit.v_min) / 4095.0 if centre_codes else 0.0
         self._p_half = 0.5 * self._p_step if centre_codes else 0.0
         self.reset()
@@ -109,6 +156,16 @@ class WheelState:
         self.saturated = False
         self.replies = 0
         self.rejected = 0
+        self._v_int = 0.0                   # integral of the reported speed [rad]
+        #: (stamp, position the codes say, _v_int, angle used, |v_rep|) of the recent replies.
+        self._hist = deque()
+        self._end = None                    # that tuple of the first reply at a range end
+        self._clean_since: Optional[float] = None   # no rule fired, off the ends, since [s]
+        #: The angle is dead-reckoned: the replies contradicted the reported speed.
+        self.mismatch = False
+        #: How often a contradiction began, and what the newest one was.
+        self.mismatches = 0
+        self.mismatch_reason = ''
 
     def update(self, position: float, velocity: float, stamp: float) -> bool:
         """
@@ -129,9 +186,18 @@ class WheelState:
             self._pos = self._position(code)
             self._origin = self._pos
             self._x_hat, self._speed = self._pos, v_rep
+            self._restart_check()
+            measured = self._pos
         else:
-            self._pos = self._track(code, v_rep, dt)
+            step = max(dt, 0.0)
+            self._v_int += step * 0.5 * (self._v_rep + v_rep)
+            dead = self._pos + step * 0.5 * (self._speed + v_rep)   # from the speed alone
+            measured = self._track(code, v_rep, step, dead)
             if dt > self.max_gap:
+                self._restart_check()
+            restart, measured, dead = self._judge(stamp, code, measured, v_rep, dead)
+            self._pos = dead if self.saturated or self.mismatch else measured
+            if restart or dt > self.max_gap:
                 self._x_hat, self._speed = self._pos, v_rep
             elif dt > 0.0:
                 alpha = min(1.0, dt / self.time_constant)
@@ -143,17 +209,86 @@ class WheelState:
         self._v_rep = v_rep
         self._stamp = stamp
         self.replies += 1
+        entry = (stamp, measured, self._v_int, self._pos, abs(v_rep))
+        self._hist.append(entry)
+        if self._end is None and self.wrap and code in (0, 65535):
+            self._end = entry
         return True
+
+    def _restart_check(self) -> None:
+        """Judge afresh from the next reply (the first, or after a gap)."""
+        self._hist.clear()
+        self._end = None
+
+    def _judge(self, stamp: float, code: int, measured: float, v_rep: float,
+               dead: float) -> Tuple[bool, float, float]:
+        """
+        Apply the contradiction rules to a reply (sets ``mismatch``).
+
+        measured: the position the codes say [rad] (unwrapped); dead: the angle dead-reckoned
+        from the previous one [rad]. Returns (the angle changes source, measured, dead), the
+        last two as they are to be used: dead from where a contradiction began, measured in
+        the whole turns nearest dead when the position is trusted again.
+        """
+        at_end = code == 0 or code == 65535
+        if not (self.wrap and at_end) or code != self._code:
+            self._end = None   # not at a range end, or at the other one (the code wrapped)
+        if abs(v_rep) >= self._judged_speed:
+            self._restart_check()   # the speed field, not the position, is at its end
+            return False, measured, dead
+        hist, found, since = self._hist, '', None
+        while len(hist) >= 2 and hist[1][0] <= stamp - MISMATCH_WINDOW:
+            hist.popleft()
+        if hist and stamp - hist[0][0] >= MISMATCH_WINDOW:
+            h = hist[0]
+            moved, integral = measured - h[1], self._v_int - h[2]
+            if abs(moved - integral) > MISMATCH_LIMIT + RECEIPT_JITTER * max(abs(v_rep), h[4]):
+                found = ('the position moved %.3f rad in %.0f ms, the reported speed %.3f rad'
+                         % (moved, 1e3 * (stamp - h[0]), integral))
+                since = h
+        end = self._end
+        if not found and end is not None:
+            outward = (self._v_int - end[2]) * (1.0 if code == 65535 else -1.0)
+            if abs(v_rep) > self._stuck_speed and outward > MISMATCH_LIMIT \
+                    + RECEIPT_JITTER * abs(v_rep):
+                found = ('the position stuck at its range end (%+.2f rad) while the reported '
+                         'speed (%.2f rad/s) moved the wheel %.3f rad on'
+                         % (self._p_min + code * self._p_step, v_rep, outward))
+                since = end
+        if found or (at_end and self.wrap):
+            self._clean_since = None
+        elif self._clean_since is None:
+            self._clean_since = stamp
+        if found and not self.mismatch:
+            self.mismatch = True
+            self.mismatches += 1
+            self.mismatch_reason = found
+            # Dead-reckon from the reply the contradiction began after: what the replies said
+            # since is not kept.
+            return True, measured, since[3] + (self._v_int - since[2])
+        if self.mismatch and self._clean_since is not None \
+                and stamp - self._clean_since >= MISMATCH_WINDOW:
+            self.mismatch = False
+            if self.wrap:   # the code's whole turns nearest the dead-reckoned angle
+                self._turns += int(round((dead - measured) / (65536 * self._p_step)))
+                measured = self._position(code)
+            return True, measured, dead
+        return False, measured, dead
 
     def _position(self, code: int) -> float:
         return self._p_min + self._p_half + (code + 65536 * self._turns) * self._p_step
 
-    def _track(self, code: int, v_rep: float, dt: float) -> float:
-        """Return the new unwrapped motor position [rad] for a position code."""
+    def _track(self, code: int, v_rep: float, dt: float, dead: float) -> float:
+        """
+        Return the new unwrapped motor position [rad] for a position code.
+
+        dead: the angle dead-reckoned from the speed [rad], what a saturating firmware's
+        reading at its range limit stands for (``wrap=False``).
+        """
         if not self.wrap:
             if code in (0, 65535):      # at the range limit: the reading says nothing more
                 self.saturated = True
-                return self._pos + max(dt, 0.0) * 0.5 * (self._speed + v_rep)
+                return dead
             self.saturated = False
             return self._position(code)
         # Of the candidates 65536 codes apart, take the one nearest to the speed's prediction.
@@ -168,7 +303,7 @@ class WheelState:
         if self._code is None:
             return WheelReading(math.nan, math.nan, math.nan, math.inf, False)
         return WheelReading(d * (self._pos - self._origin), d * self._speed, d * self._v_rep,
-                            now - self._stamp, self.saturated)
+                            now - self._stamp, self.saturated, self.mismatch)
 
     def age(self, now: float) -> float:
         """Return the age [s] of the latest reply at now [s] (inf before the first)."""

@@ -53,10 +53,12 @@ from ..core.balance_loop import CmdHeight, CmdVel, joint_names, STATE_FIELDS
 from ..core.config import BalanceConfig
 from ..core.safety import Mode
 from ..core.schema import to_flat
-from ..processes import end_process
+from ..processes import Child, end_process, StartError
 
 #: How long the node waits for the control loop to start [s] (imports numpy and scipy).
 START_TIMEOUT = 30.0
+#: The control process's module (nodes/control_process.py).
+CONTROL_MODULE = 'wheelleg_balance.nodes.control_process'
 #: How long ~/arm waits for the loop's answer [s].
 ARM_TIMEOUT = 1.0
 #: A status older than this [s] means the control loop is not alive (it sends ten a second).
@@ -124,6 +126,8 @@ class BalanceNode(Node):
         ros_end, loop_end = L.socket_pair()
         intake_end, loop_sensor_end = L.socket_pair()
         self.link = L.Link(ros_end)
+        self._control: Optional[Child] = None
+        self._intake_child: Optional[Child] = None
         self._child: Optional[subprocess.Popen] = None
         self._intake: Optional[subprocess.Popen] = None
         self.watchdog: Optional[watchdog.WatchdogProcess] = None
@@ -137,17 +141,25 @@ class BalanceNode(Node):
             self._start_intake(intake_end)
             self._reader.start()
             if not self._ready.wait(START_TIMEOUT) or self.link.closed:
-                raise RuntimeError(self._control_error or 'control loop did not start')
+                raise StartError(self._child_failure(self._control) or self._control_error
+                                 or 'control loop did not start')
             # The loop reports the intake's subscriptions (a process of its own) in its status.
             end = time.monotonic() + START_TIMEOUT
             while not (self._status or {}).get('intake_ready') and time.monotonic() < end \
                     and not self.link.closed and self._intake.poll() is None:
                 time.sleep(0.02)
             if not (self._status or {}).get('intake_ready'):
-                raise RuntimeError('sensor intake did not start (exit code %s)'
-                                   % self._intake.poll())
+                if self.link.closed:   # the control process ended first
+                    raise StartError(self._child_failure(self._control) or self._control_error
+                                     or 'control loop ended')
+                raise StartError(self._child_failure(self._intake_child)
+                                 or 'sensor intake did not start (exit code %s)'
+                                 % self._intake.poll())
             if self.watchdog is not None:   # none with an in-process bus
                 self.watchdog.wait(end)
+            for child in (self._control, self._intake_child):
+                if child is not None:
+                    child.started()   # a later failure goes to stderr, traceback and all
         except BaseException:
             # Whatever stopped the start (an error, a signal), the motors end at zero torque.
             self.shutdown()
@@ -190,12 +202,13 @@ class BalanceNode(Node):
                                                    name='balance_control', daemon=True)
             self._runner_thread.start()
             return
-        self.watchdog = watchdog.WatchdogProcess(self.config.safety.watchdog_timeout)
+        self.watchdog = watchdog.WatchdogProcess(watchdog.stall_limit(self.config))
         fds = (L.inheritable(loop_end), L.inheritable(sensor_end), self.watchdog.heartbeat.fd)
-        self._child = subprocess.Popen(
-            [sys.executable, '-m', 'wheelleg_balance.nodes.control_process', '--fd',
-             str(fds[0]), '--sensor-fd', str(fds[1]), '--heartbeat-fd', str(fds[2])],
+        # Each child on this process's sys.path, never the working directory's (processes.py).
+        self._control = Child('the control process', CONTROL_MODULE, [
+            '--fd', str(fds[0]), '--sensor-fd', str(fds[1]), '--heartbeat-fd', str(fds[2])],
             pass_fds=fds)
+        self._child = self._control.process
         # The child has its copies; ours would hide the child's end-of-file.
         loop_end.close()
         sensor_end.close()
@@ -205,10 +218,15 @@ class BalanceNode(Node):
     def _start_intake(self, intake_end) -> None:
         fd = L.inheritable(intake_end)
         # joint_states_in, never the joint_states this node publishes (docs/interface.md).
-        self._intake = subprocess.Popen(sensor_intake.command(
-            fd, self.get_name(), self.get_namespace(), self.resolve_topic_name('imu'),
-            self.resolve_topic_name('joint_states_in'), to_flat(self.config),
-            sensor_intake.enclave_argument(sys.argv)), pass_fds=(fd,))
+        self._intake_child = Child('the sensor intake', sensor_intake.MODULE,
+                                   sensor_intake.arguments(
+                                       fd, self.get_name(), self.get_namespace(),
+                                       self.resolve_topic_name('imu'),
+                                       self.resolve_topic_name('joint_states_in'),
+                                       to_flat(self.config),
+                                       sensor_intake.enclave_argument(sys.argv)),
+                                   pass_fds=(fd,))
+        self._intake = self._intake_child.process
         intake_end.close()
 
     # --------------------------------------------------------------- from the control loop
@@ -227,9 +245,16 @@ class BalanceNode(Node):
                                                   throttle_duration_sec=1.0)
         if not self._closing.is_set():
             self._control_error = self._control_error or 'control loop ended'
-            self.get_logger().error('control loop process ended: the motors got its stop '
-                                    'frames if it could send them')
+            if self._ready.is_set():   # else a failed start: its one line ends the node
+                self.get_logger().error('control loop process ended: the motors got its stop '
+                                        'frames if it could send them')
         self._ready.set()
+
+    @staticmethod
+    def _child_failure(child: Optional[Child]) -> Optional[str]:
+        """Return a child's line (a failed start) or exit code, else None (still running)."""
+        # Its link closes as it ends: the line, written before, or its exit follows at once.
+        return None if child is None else child.failure(wait=2.0)
 
     def _commanding(self) -> bool:
         """Return True while the motors are commanded or an arm request is under way."""
@@ -392,6 +417,9 @@ class BalanceNode(Node):
         self.link.close()
         if self.watchdog is not None:
             self.watchdog.close()
+        for child in (self._control, self._intake_child):
+            if child is not None:
+                child.started()   # closes its report pipe
 
     def stop_loop(self) -> None:
         """Tell the control loop to stop now: zero torque, exit frames (from a signal handler)."""
@@ -464,6 +492,10 @@ def main(args=None) -> int:
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except StartError as exc:   # a child's line (what, why, the fix), or the node's own
+        if rclpy.ok():
+            print('balance_node: %s' % exc, file=sys.stderr)
+            rc = 1
     except Exception as exc:  # noqa: B902 -- one clear line, no traceback
         if rclpy.ok():  # else a signal shut rclpy down while we started or spun: not an error
             print('balance_node: %s: %s' % (type(exc).__name__, exc), file=sys.stderr)

@@ -14,8 +14,10 @@ well inside ``motor_timeout``.
 A raw SocketCAN socket does not receive its own frames (``CAN_RAW_RECV_OWN_MSGS`` is off by
 default), and python-can's ``receive_own_messages`` is off; its udp_multicast test bus hands
 them back all the same (every member of the group, the sender too, gets each datagram). Such an
-echo of a frame sent since the previous poll is dropped here, before it is decoded, counted or
-added to the bus load: on the test bus four of a tick's eight received frames were echoes.
+echo of a frame sent within ECHO_WINDOW is dropped here, before it is decoded, counted or
+added to the bus load: on the test bus four of a tick's eight received frames were echoes. Not
+only those of the frames since the previous poll: on a loaded machine an echo can come after
+it, and would pass for another sender's command to our motors (a FAULT, core/balance_loop.py).
 
 On SocketCAN python-can opens, binds and configures the raw socket (error frames, its kernel
 filter), and the frames of the loop are read and written on that socket directly, one
@@ -38,6 +40,7 @@ from can.interfaces.udp_multicast import UdpMulticastBus
 from . import socketcan_hub
 from ..core.can_budget import frame_bits
 from ..core.protocols.base import Frame
+from ..processes import StartError
 
 
 def hands_back_own_frames(bus: can.BusABC) -> bool:
@@ -101,6 +104,23 @@ def open_bus(interface: str, channel: str, udp_port: int = 43113) -> can.BusABC:
     return can.Bus(interface=interface, channel=channel)
 
 
+def open_bus_or_fail(interface: str, channel: str, udp_port: int = 43113,
+                     what: str = 'the CAN bus') -> can.BusABC:
+    """open_bus; a bus that does not open is a StartError: which, why, what to check."""
+    try:
+        return open_bus(interface, channel, udp_port)
+    except Exception as exc:  # noqa: B902 -- python-can raises what its back-end raises
+        if interface == 'socketcan':
+            fix = ('is %s there and up? (ip link show %s; ip link set %s up type can bitrate '
+                   '1000000); else set can.interface / can.channel' % ((channel,) * 3))
+        else:
+            fix = 'check can.interface, can.channel and can.udp_port'
+        raise StartError('cannot open %s %s:%s' % (what, interface, channel),
+                         '%s: %s' % (type(exc).__name__, exc), fix) from exc
+
+
+#: How long a sent frame's echo is waited for [s] (buses that hand them back).
+ECHO_WINDOW = 0.1
 #: Frames one poll reads at most. A 1 Mbit/s bus carries at most about 18 frames per 2 ms tick;
 #: udp_multicast also loops the node's own frames back.
 MAX_FRAMES_PER_POLL = 64
@@ -135,7 +155,8 @@ class CanIo:
         self.bits = 0
         # Echoes are looked for only where the bus makes them: the robot's sends pay nothing.
         self._track_echoes = hands_back_own_frames(bus)
-        #: (arbitration ID, data) of the frames sent since the last poll -> how many.
+        #: (arbitration ID, data) of the frames sent whose echo has not come -> send times [s],
+        #: oldest first (forgotten after ECHO_WINDOW).
         self._sent = {}
         self.last_tx_error = ''
         self.last_rx_error = ''
@@ -161,7 +182,7 @@ class CanIo:
             # One receipt time for the poll: the frames waited in the socket until now.
             now = self._clock()
             recv = self.bus.recv
-            sent, self._sent = self._sent, {}
+            sent = self._sent
             try:
                 while n < max_frames:
                     msg = recv(timeout=0.0)
@@ -175,9 +196,11 @@ class CanIo:
                     extended = msg.is_extended_id
                     if sent and not extended:
                         key = (msg.arbitration_id, data)
-                        copies = sent.get(key)
-                        if copies:   # our own frame, handed back by the bus
-                            sent[key] = copies - 1
+                        times = sent.get(key)
+                        if times:   # our own frame, handed back by the bus
+                            del times[0]
+                            if not times:
+                                del sent[key]
                             echoes += 1
                             continue
                     frames += 1
@@ -186,6 +209,14 @@ class CanIo:
             except (can.CanError, OSError, ValueError) as exc:
                 self.rx_errors += 1
                 self.last_rx_error = '%s: %s' % (type(exc).__name__, exc)
+            if sent:   # echoes that never came (a full socket buffer drops them)
+                old = now - ECHO_WINDOW
+                for key in [k for k, times in sent.items() if times[0] < old]:
+                    times = [t for t in sent[key] if t >= old]
+                    if times:
+                        sent[key] = times
+                    else:
+                        del sent[key]
             self.rx_frames += frames
             self.rx_echoes += echoes
             self.bits += bits
@@ -234,6 +265,7 @@ class CanIo:
                 return 'bus closed'
             if self.raw is not None:
                 return self._send_raw(frames)
+            now = self._clock() if self._track_echoes else 0.0
             for f in frames:
                 msg = can.Message(arbitration_id=f.arbitration_id, data=f.data,
                                   is_extended_id=f.is_extended_id)
@@ -247,7 +279,7 @@ class CanIo:
                 self.bits += frame_bits(len(f.data), f.is_extended_id)
                 if self._track_echoes and not f.is_extended_id:   # the loop's frames
                     key = (f.arbitration_id, bytes(f.data))
-                    self._sent[key] = self._sent.get(key, 0) + 1
+                    self._sent.setdefault(key, []).append(now)
             return None
 
     def _send_raw(self, frames: Iterable[Frame]) -> Optional[str]:

@@ -7,10 +7,12 @@ changes), polls the CAN bus, runs ``BalanceLoop.tick`` (core/balance_loop.py), s
 and sends back the state (at the publication rates), arm replies, log lines and, ten times a
 second or on a mode change, a status for /diagnostics.
 
-balance_node starts it as a child process (``python -m wheelleg_balance.nodes.control_process
---fd N``), so the executor, the parameter and service machinery and DDS discovery share no
-interpreter with the tick; tests that hand the node an in-process python-can bus run the same
-runner in a thread. The child ends with zero torque and exit-motor-mode frames when told to
+balance_node starts it as a child process (``python -P -m
+wheelleg_balance.nodes.control_process --fd N`` on the parent's sys.path: processes.Child),
+so the executor, the parameter and service machinery and DDS discovery share no interpreter
+with the tick; a bus that does not open is one line to balance_node, which ends with it;
+tests that hand the node an in-process python-can bus run the same runner in a thread. The
+child ends with zero torque and exit-motor-mode frames when told to
 (STOP), when the ROS side goes away (end-of-file on the link: the parent died, even by
 SIGKILL; the kernel also sends it SIGTERM then: PR_SET_PDEATHSIG) and on SIGINT, SIGTERM,
 SIGHUP or SIGQUIT. The sensor samples come from the sensor intake process over a socket pair
@@ -24,7 +26,13 @@ paced by the simulated sensor instead of the wall clock: one tick per IMU sample
 sample's header stamp, and every receipt time of that tick (samples, CAN replies, commands) is
 that stamp, so every timeout runs on simulated time. sim_node steps its physics once it has the
 frames of the tick, so the closed loop is the same on an idle machine and on a loaded one,
-only slower (docs/simulation.md). Never on a robot: a silent IMU would stop the clock.
+only slower (docs/simulation.md). Never on a robot: a silent IMU would stop the clock (the
+configuration allows it only on the test buses, core/config.py). So there only a tick writes
+the heartbeat, and while the motors are commanded a wall-clock guard stands in for the stopped
+clock: no new sample for ``lockstep_wall_timeout`` (1 s) of wall time runs one more tick, a
+period after the last, told that the IMU is silent (``TickInputs.imu_silent``): FAULT
+imu_stale, zero torque. Should the loop itself hang, the watchdog fires on the heartbeat that
+no tick renewed (its limit there is that timeout plus ``watchdog_timeout``).
 """
 import argparse
 from array import array
@@ -36,7 +44,7 @@ import time
 from typing import Optional
 
 from . import control_link as L
-from .can_io import CanIo, open_bus
+from .can_io import CanIo, open_bus_or_fail
 from .sensor_intake import die_with_parent
 from .watchdog import Heartbeat, WATCHING
 from ..core import realtime
@@ -46,6 +54,7 @@ from ..core.config import BalanceConfig
 from ..core.deadline import DeadlineLoop, TIMING_WINDOW, window_stats
 from ..core.safety import COMMANDING, Mode
 from ..core.schema import from_flat
+from ..processes import run_child, StartError
 
 #: Missed deadlines served late, back to back, before a stall is skipped. Catching up keeps the
 #: rate at 500 Hz and the observer's 2 ms time base (it is discretized per update); a longer
@@ -202,7 +211,11 @@ class ControlRunner:
             self.inputs.guarded = hb.state()[0] == WATCHING
 
     def _drain_link(self) -> None:
-        self._beat()
+        if not self.on_stamps:
+            self._beat()
+        elif self.heartbeat is not None:
+            # On stamps only a tick beats: no sample, no tick, a heartbeat that goes stale.
+            self.inputs.guarded = self.heartbeat.state()[0] == WATCHING
         # The intake's samples first, then the ROS side's messages (it may carry samples too).
         for link in (self.sensor_link, self.link):
             if link is not None:
@@ -245,6 +258,8 @@ class ControlRunner:
         # its age), also before the first sample; _step adds one on a mode change.
         self._status_due = math.inf
         status_due = time.monotonic()
+        silent_limit = self.cfg.loop.lockstep_wall_timeout
+        last_tick = time.monotonic()
         while not self.timer.stopped:
             link.wait_readable(IDLE_WAKE)
             self._drain_link()
@@ -252,14 +267,17 @@ class ControlRunner:
                 status_due = time.monotonic() + STATUS_PERIOD
                 self.link.send_object(L.STATUS, self.status(self.now))
             inputs = self.inputs
-            if not inputs.imu:
+            now = self._newest_stamp()
+            silent = time.monotonic() - last_tick
+            if now is None and silent > silent_limit and self.loop.mode in COMMANDING:
+                # The clock stopped with torque in the motors: one tick, a period on, faults.
+                inputs.imu_silent = (
+                    'no IMU sample for %.2f s of wall time on IMU stamps (lockstep_wall_timeout '
+                    '%.2f s): the simulator or the IMU stopped' % (silent, silent_limit))
+                now = self.now + self.timer.period
+            if now is None:
                 continue
-            newest = inputs.imu[-1]
-            now = newest.stamp_sec + 1e-9 * newest.stamp_nanosec
-            if now <= self.now:
-                self.stamps_not_advancing += 1   # a repeated or older stamp: time stands
-                inputs.imu.clear()
-                continue
+            last_tick = time.monotonic()
             # Every receipt time of this tick is its stamp: the timeouts run on sim time.
             inputs.imu[:] = [s._replace(t=s.stamp_sec + 1e-9 * s.stamp_nanosec)
                              for s in inputs.imu]
@@ -272,6 +290,19 @@ class ControlRunner:
                 self._step(now)
             except Exception as exc:  # noqa: B902 -- as DeadlineLoop: the loop lives on
                 self._on_error(int(now * 1e9), exc)
+
+    def _newest_stamp(self) -> Optional[float]:
+        """Return the newest sample's stamp [s] if it advances the clock, else None."""
+        imu = self.inputs.imu
+        if not imu:
+            return None
+        newest = imu[-1]
+        now = newest.stamp_sec + 1e-9 * newest.stamp_nanosec
+        if now <= self.now:
+            self.stamps_not_advancing += 1   # a repeated or older stamp: time stands
+            imu.clear()
+            return None
+        return now
 
     def _tick(self, now_ns: int) -> None:
         self._drain_link()
@@ -390,24 +421,19 @@ def main(argv=None) -> int:
             if tag == L.PARAMS:
                 params = payload
     if params is None:
-        print('control_process: no configuration from balance_node', file=sys.stderr)
-        return 1
+        raise StartError('the control process', 'no configuration from balance_node within '
+                         '30 s', 'balance_node starts it; it is not run by hand')
     cfg = from_flat(BalanceConfig, params)
-    try:
-        bus = open_bus(cfg.can.interface, cfg.can.channel, cfg.can.udp_port)
-    except Exception as exc:  # noqa: B902 -- one clear line to the ROS side, then exit
-        link.send_object(L.EVENT, ('error', 'cannot open CAN bus %s:%s: %s' % (
-            cfg.can.interface, cfg.can.channel, exc)))
-        return 2
+    # A bus that does not open is one line to balance_node (processes.run_child), which ends.
+    bus = open_bus_or_fail(cfg.can.interface, cfg.can.channel, cfg.can.udp_port)
     leg_bus = None
     if cfg.legs.driven and cfg.legs.channel and cfg.legs.channel != cfg.can.channel:
         try:
-            leg_bus = open_bus(cfg.can.interface, cfg.legs.channel, cfg.can.udp_port)
-        except Exception as exc:  # noqa: B902 -- one clear line to the ROS side, then exit
-            link.send_object(L.EVENT, ('error', "cannot open the legs' CAN bus %s:%s: %s" % (
-                cfg.can.interface, cfg.legs.channel, exc)))
+            leg_bus = open_bus_or_fail(cfg.can.interface, cfg.legs.channel, cfg.can.udp_port,
+                                       "the legs' CAN bus")
+        except StartError:
             bus.shutdown()
-            return 2
+            raise
     heartbeat = None if args.heartbeat_fd is None else Heartbeat(args.heartbeat_fd)
     runner = ControlRunner(cfg, bus, link, sensor_link, leg_bus=leg_bus, heartbeat=heartbeat)
     _stop_on_signals(runner)
@@ -417,4 +443,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == '__main__':
-    sys.exit(main())
+    sys.exit(run_child('the control process', main))

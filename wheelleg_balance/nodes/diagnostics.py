@@ -39,6 +39,13 @@ def safety_status(st: Dict[str, Any], hardware_id: str) -> DiagnosticStatus:
     if st['input_conflicts']:   # inputs refused for their publishers (nodes/input_guard.py)
         out.level = max(out.level, WARN)
         out.message += '; refused: %s' % st['input_conflicts']
+    foreign, warnings = st.get('foreign_command_reason', ''), st.get('warnings', [])
+    if foreign:   # command frames of another sender to our motors (core/balance_loop.py)
+        out.level = max(out.level, WARN)
+        out.message += '; %s' % foreign
+    if warnings:   # WARNING_CODES (core/safety.py): no FAULT, but not right either
+        out.level = max(out.level, WARN)
+        out.message += ''.join('; %s: %s' % w for w in warnings)
     out.values = key_values(
         mode=mode, mode_index=st['mode_index'], faults=','.join(c for c, _ in faults),
         fault_reasons=_reasons(faults), conditions=','.join(c for c, _ in conditions),
@@ -47,7 +54,9 @@ def safety_status(st: Dict[str, Any], hardware_id: str) -> DiagnosticStatus:
         cmd_vel_timed_out=st['cmd_vel_timed_out'], rejected_cmd_vel=st['rejected_cmd_vel'],
         frozen_imu_samples=st['frozen_imu_samples'],
         refused_imu_stamps=st['refused_imu_stamps'],
-        refused_imu_reason=st['refused_imu_reason'], input_conflicts=st['input_conflicts'])
+        refused_imu_reason=st['refused_imu_reason'], input_conflicts=st['input_conflicts'],
+        foreign_commands=st.get('foreign_commands', 0), foreign_command_reason=foreign,
+        warnings=','.join(c for c, _ in warnings), warning_reasons=_reasons(warnings))
     return out
 
 

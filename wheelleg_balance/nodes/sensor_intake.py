@@ -18,10 +18,11 @@ transport made even this subscription-only participant's discovery wait 0.33 s f
 processes, and the samples with it. With ``realtime_priority`` set, the intake runs
 SCHED_FIFO one below the loop.
 
-balance_node starts it (``python -m wheelleg_balance.nodes.sensor_intake --fd N ...``) with
-the topic names it has resolved, so its remappings apply. The intake ends when the control
-process goes away (the link closes), when balance_node dies (the kernel sends it SIGTERM:
-PR_SET_PDEATHSIG) and on SIGINT/SIGTERM/SIGHUP/SIGQUIT.
+balance_node starts it (``python -P -m wheelleg_balance.nodes.sensor_intake --fd N ...`` on
+its own sys.path: processes.Child) with the topic names it has resolved, so its remappings
+apply; a failed start is one line to balance_node, which ends with it. The intake ends when
+the control process goes away (the link closes), when balance_node dies (the kernel sends it
+SIGTERM: PR_SET_PDEATHSIG) and on SIGINT/SIGTERM/SIGHUP/SIGQUIT.
 """
 import argparse
 import contextlib
@@ -40,6 +41,7 @@ from ..core.balance_loop import joint_state_reader, joint_states_used
 from ..core.config import BalanceConfig
 from ..core.schema import from_flat
 from ..core.sensors import ImuSample, JointStateReader
+from ..processes import run_child
 
 #: Messages taken from one subscription per wake-up at most (its queue holds 5).
 MAX_TAKES = 16
@@ -197,16 +199,19 @@ def enclave_argument(argv) -> str:
     return ''
 
 
-def command(fd: int, name: str, namespace: str, imu_topic: str, joint_topic: str,
-            params: dict, enclave: str = ''):
+#: The intake's module (started by balance_node as processes.Child).
+MODULE = 'wheelleg_balance.nodes.sensor_intake'
+
+
+def arguments(fd: int, name: str, namespace: str, imu_topic: str, joint_topic: str,
+              params: dict, enclave: str = ''):
     """
-    Return the command that starts the intake process (``params``: flat configuration).
+    Return the arguments of the intake process (``params``: flat configuration).
 
     enclave: balance_node's SROS2 enclave, for the intake's own participant ('' = none given).
     """
     import json
-    return [sys.executable, '-m', 'wheelleg_balance.nodes.sensor_intake', '--fd', str(fd),
-            '--name', name, '--namespace', namespace, '--imu', imu_topic,
+    return ['--fd', str(fd), '--name', name, '--namespace', namespace, '--imu', imu_topic,
             '--joint-states', joint_topic, '--params', json.dumps(params),
             '--enclave', enclave]
 
@@ -262,4 +267,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == '__main__':
-    sys.exit(main())
+    sys.exit(run_child('the sensor intake', main))

@@ -21,6 +21,12 @@ shared memory for /diagnostics (nodes/diagnostics.py). balance_node starts it be
 control process and arms only once it runs; it ends with its parent (PR_SET_PDEATHSIG), after
 giving a commanding control process the same time to end cleanly.
 
+With ``clock_source: imu_stamp`` (lockstep with a simulator, which may take longer than
+``watchdog_timeout`` between two ticks on a loaded machine) only a tick writes the heartbeat,
+and the limit is ``lockstep_wall_timeout`` + ``watchdog_timeout`` (``stall_limit``): the loop's
+own guard (FAULT imu_stale after ``lockstep_wall_timeout`` without a sample) comes first, the
+watchdog catches a loop that hangs.
+
 The heartbeat (``Heartbeat``): 24 bytes in a memfd both processes map: the loop's monotonic
 time [s, float64] and flags [uint32] (written by the control process only), the watchdog's
 state [uint32] and the stall it saw [s, float64] (written by the watchdog only).
@@ -33,6 +39,8 @@ import struct
 import sys
 import time
 from typing import Callable, Optional, Tuple
+
+from ..processes import Child, end_process, run_child, StartError
 
 #: Written by the control process: the time of its loop's newest pass [s], flags.
 _LOOP = struct.Struct('<dI')
@@ -169,11 +177,23 @@ class Watchdog:
             self.sleep(poll)
 
 
-def command(heartbeat_fd: int, pid: int, params: dict):
-    """Return the command that starts the watchdog of control process ``pid``."""
+def stall_limit(cfg) -> float:
+    """Return the heartbeat age [s] that is a stall for configuration ``cfg`` (the docstring)."""
+    timeout = cfg.safety.watchdog_timeout
+    if cfg.loop.clock_source == 'imu_stamp':
+        return cfg.loop.lockstep_wall_timeout + timeout
+    return timeout
+
+
+#: The watchdog's module (started by balance_node as processes.Child).
+MODULE = 'wheelleg_balance.nodes.watchdog'
+
+
+def arguments(heartbeat_fd: int, pid: int, params: dict):
+    """Return the arguments of the watchdog of control process ``pid``."""
     import json
-    return [sys.executable, '-m', 'wheelleg_balance.nodes.watchdog', '--heartbeat-fd',
-            str(heartbeat_fd), '--pid', str(pid), '--params', json.dumps(params)]
+    return ['--heartbeat-fd', str(heartbeat_fd), '--pid', str(pid), '--params',
+            json.dumps(params)]
 
 
 class WatchdogProcess:
@@ -188,16 +208,17 @@ class WatchdogProcess:
         self.heartbeat = Heartbeat()
         self.timeout = timeout
         self.process = None
+        self.child = None
 
     def start(self, pid: int, params: dict) -> None:
         """Start the watchdog of control process ``pid`` (``params``: flat configuration)."""
-        import subprocess
-        self.process = subprocess.Popen(command(self.heartbeat.fd, pid, params),
-                                        pass_fds=(self.heartbeat.fd,))
+        self.child = Child('the watchdog', MODULE, arguments(self.heartbeat.fd, pid, params),
+                           pass_fds=(self.heartbeat.fd,))
+        self.process = self.child.process
 
     def wait(self, until: float) -> None:
         """
-        Wait until it has started, at most until ``until`` [s, monotonic]; RuntimeError if not.
+        Wait until it has started, at most until ``until`` [s, monotonic]; StartError if not.
 
         Started is any state past STARTING: on a loaded machine the loop may arm (it arms only
         once the watchdog watches), fault and be fired on before this polls, and a watchdog
@@ -207,7 +228,11 @@ class WatchdogProcess:
                 and self.process.poll() is None:
             time.sleep(0.02)
         if self.heartbeat.state()[0] == STARTING:
-            raise RuntimeError('watchdog did not start (exit code %s)' % self.process.poll())
+            line = self.child.failure(wait=1.0) if self.child is not None else None
+            raise StartError(line or 'the watchdog did not start (exit code %s)'
+                             % self.process.poll())
+        if self.child is not None:
+            self.child.started()
 
     def state(self) -> dict:
         """Return its state for /diagnostics (Heartbeat.describe, running, timeout)."""
@@ -218,9 +243,10 @@ class WatchdogProcess:
 
     def close(self) -> None:
         """End it (it ends by itself once the loop has ended) and free the shared memory."""
-        from ..processes import end_process
         if self.process is not None:
             end_process(self.process, timeout=1.0)
+        if self.child is not None:
+            self.child.started()   # closes the report pipe
         self.heartbeat.close()
         os.close(self.heartbeat.fd)
 
@@ -255,7 +281,7 @@ def _process_watch(pid: int) -> Tuple[Callable[[], bool], Callable[[float], None
 def main(argv=None) -> int:
     """Watch the control process of the balance_node that started this process."""
     import json
-    from .can_io import CanIo, open_bus
+    from .can_io import CanIo, open_bus_or_fail
     from .sensor_intake import die_with_parent
     from ..core import realtime
     from ..core.balance_loop import all_stop_frames
@@ -278,7 +304,8 @@ def main(argv=None) -> int:
     send_timeout = 0.01
 
     def bus(channel):
-        return CanIo(open_bus(cfg.can.interface, channel, cfg.can.udp_port), send_timeout,
+        return CanIo(open_bus_or_fail(cfg.can.interface, channel, cfg.can.udp_port,
+                                      "the watchdog's CAN bus"), send_timeout,
                      raw_frames=cfg.can.raw_frames)
     buses = [(bus(cfg.can.channel), wheel_frames)]
     if leg_frames:
@@ -304,7 +331,7 @@ def main(argv=None) -> int:
               'motor mode sent to every motor; restart balance_node'
               % (STATE_TEXT[state], 1e3 * age), file=sys.stderr, flush=True)
 
-    dog = Watchdog(heartbeat, cfg.safety.watchdog_timeout, alive, fire, sleep=wait)
+    dog = Watchdog(heartbeat, stall_limit(cfg), alive, fire, sleep=wait)
     try:
         dog.run(lambda: bool(stopping))
     finally:
@@ -315,4 +342,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == '__main__':
-    sys.exit(main())
+    sys.exit(run_child('the watchdog', main))

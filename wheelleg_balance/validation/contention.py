@@ -15,8 +15,10 @@ Two of the kernel's own counters, both system-wide:
 docs/faults.md gives the figures of quiet and loaded runs that the thresholds of
 test/test_faults.py come from.
 """
+from collections import deque
+import threading
 import time
-from typing import Dict, Optional, Tuple
+from typing import Deque, Dict, Optional, Tuple
 
 PRESSURE = '/proc/pressure/cpu'
 STAT = '/proc/stat'
@@ -58,16 +60,64 @@ class CpuContention:
         self._steal0 = _steal_jiffies()
 
     def figures(self) -> Dict[str, Optional[float]]:
-        elapsed = time.monotonic() - self._t0
-        pressure, steal = _pressure_us(), _steal_jiffies()
-        out: Dict[str, Optional[float]] = {'cpu_pressure_pct': None, 'cpu_steal_pct': None}
-        if pressure is not None and self._pressure0 is not None and elapsed > 0.0:
-            out['cpu_pressure_pct'] = round(100.0 * 1e-6 * (pressure - self._pressure0)
-                                            / elapsed, 1)
-        if steal is not None and self._steal0 is not None and steal[1] > self._steal0[1]:
-            out['cpu_steal_pct'] = round(100.0 * (steal[0] - self._steal0[0])
-                                         / (steal[1] - self._steal0[1]), 1)
-        return out
+        """Return {'cpu_pressure_pct', 'cpu_steal_pct'} from construction to now."""
+        return _shares(time.monotonic() - self._t0, self._pressure0, _pressure_us(),
+                       self._steal0, _steal_jiffies())
+
+
+def _shares(elapsed: float, p0: Optional[int], p1: Optional[int],
+            s0: Optional[Tuple[int, int]], s1: Optional[Tuple[int, int]]
+            ) -> Dict[str, Optional[float]]:
+    """CPU pressure and steal [%] between two readings of the counters ``elapsed`` [s] apart."""
+    out: Dict[str, Optional[float]] = {'cpu_pressure_pct': None, 'cpu_steal_pct': None}
+    if p0 is not None and p1 is not None and elapsed > 0.0:
+        out['cpu_pressure_pct'] = round(100.0 * 1e-6 * (p1 - p0) / elapsed, 1)
+    if s0 is not None and s1 is not None and s1[1] > s0[1]:
+        out['cpu_steal_pct'] = round(100.0 * (s1[0] - s0[0]) / (s1[1] - s0[1]), 1)
+    return out
+
+
+class CpuHistory:
+    """
+    The counters read every ``period`` [s] in a thread: the contention over any past window.
+
+    What a test needs to judge the machine *before* it injected a fault (the node's own
+    reaction to the fault cannot then count as contention). ``window(t0, t1)`` uses the
+    readings nearest to the two monotonic times; ``keep`` [s] of readings are kept.
+    """
+
+    def __init__(self, period: float = 0.1, keep: float = 120.0):
+        self.period = period
+        self._readings: Deque[Tuple[float, Optional[int], Optional[Tuple[int, int]]]] = \
+            deque(maxlen=max(2, int(keep / period)))
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name='cpu_history', daemon=True)
+
+    def __enter__(self) -> 'CpuHistory':
+        self._read()
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    def _read(self) -> None:
+        self._readings.append((time.monotonic(), _pressure_us(), _steal_jiffies()))
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.period):
+            self._read()
+
+    def window(self, t0: float, t1: float) -> Dict[str, Optional[float]]:
+        """Return {'cpu_pressure_pct', 'cpu_steal_pct'} over [t0, t1] (None where unknown)."""
+        self._read()
+        readings = list(self._readings)
+
+        def nearest(t):
+            return min(readings, key=lambda r: abs(r[0] - t))
+        a, b = nearest(t0), nearest(t1)
+        return _shares(b[0] - a[0], a[1], b[1], a[2], b[2])
 
 
 def contended(figures: Dict[str, Optional[float]], pressure_pct: float,

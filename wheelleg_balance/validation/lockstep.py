@@ -3,10 +3,13 @@ The whole robot in lockstep: the control tick against the MuJoCo robot and its s
 
 ``Lockstep`` runs core/balance_loop.py's BalanceLoop, tick by tick on simulated time, against
 sim/robot_sim.py (hips as torque motors) and sim/robot_motors.py (one MIT firmware emulator per
-joint): the tick's frames go to the emulators, their replies (the true joint states, quantized
-as the firmware packs them) come back as the next tick's frames, and the IMU sample is the
-simulated one. No ROS, no bus, no wall clock: deterministic, faster than real time. It is the
-offline twin of main_job's sim_node + balance_node, for tests and tuning.
+joint; with ``legs.driven: false`` the legs are the simulator's position servos at the given
+height, the robot's fixed legs, and only the wheels have motors): the tick's frames go to the
+emulators, their replies (the true joint states, quantized as the firmware packs them) come
+back as the next tick's frames, and the IMU sample is the simulated one. No ROS, no bus, no
+wall clock: deterministic, faster than real time. It is the offline twin of main_job's
+sim_node + balance_node, for tests and tuning. ``play_experiment`` plays one of main_job's
+experiments on it, with driven or fixed legs.
 """
 import math
 from typing import Callable, Dict, List, Optional
@@ -26,14 +29,15 @@ class Lockstep:
     """
     BalanceLoop + RobotSim + RobotMotors (see the module docstring).
 
-    params: balance_node parameter overrides (SIM_PARAMS first); pose: RobotSim.reset's
-    ('folded', after power-up, by default);
+    params: balance_node parameter overrides (SIM_PARAMS first; ``legs.driven: False`` for
+    fixed legs: RobotSim's servos hold ``height``); pose: RobotSim.reset's ('folded', after
+    power-up, by default; 'tail' with fixed legs, which cannot fold);
     imu_offset: the IMU's pitch offset d [rad]; power_up: the hips know their angle only
     modulo a rotor turn (then ``legs.homing: hard_stops`` is needed); sim: further RobotSim
     arguments (pushes, slope, ...).
     """
 
-    def __init__(self, params: Optional[Dict] = None, pose: str = 'folded',
+    def __init__(self, params: Optional[Dict] = None, pose: Optional[str] = None,
                  imu_offset: float = 0.0, power_up: bool = False, height: float = 0.37,
                  **sim):
         cfg = from_flat(BalanceConfig, dict(SIM_PARAMS, **(params or {})))
@@ -42,14 +46,19 @@ class Lockstep:
             raise ValueError('; '.join(problems))
         self.cfg = cfg
         self.loop = BalanceLoop(cfg)
-        self.sim = RobotSim(d_offset=imu_offset, height=height, legs='motors', **sim)
-        self.sim.reset(pose)
+        driven = cfg.legs.driven
+        self.sim = RobotSim(d_offset=imu_offset, height=height,
+                            legs='motors' if driven else 'servo', **sim)
+        self.sim.reset(pose or ('folded' if driven else 'tail'))
         lc, can = cfg.legs, cfg.can
         self.motors = RobotMotors(self.sim, default_specs(
             (can.left_motor_id, can.right_motor_id), (can.left_direction, can.right_direction),
-            tuple(lc.motor_ids), tuple(lc.directions), tuple(lc.offsets)), power_up=power_up)
+            tuple(lc.motor_ids), tuple(lc.directions), tuple(lc.offsets), hips=driven),
+            power_up=power_up)
         self.period = cfg.loop.control_period
         self.t = 0.0
+        #: When balancing began in a play (``play_experiment``) [s].
+        self.t0: Optional[float] = None
         self.inputs = TickInputs()
         self._replies: List = []
         self._stamp = 0
@@ -119,3 +128,72 @@ class Lockstep:
     def series(self, name: str, since: float = -math.inf) -> List[float]:
         """Return the logged quantity ``name`` from ``since`` [s] on."""
         return [row[name] for row in self.log if row['t'] >= since]
+
+
+#: How long a play waits for balancing after the arm [s] (homing and the leg raise: 2.6 s).
+PLAY_START_LIMIT = 8.0
+
+
+def play_experiment(name: str, driven: bool = True, params: Optional[Dict] = None,
+                    duration: Optional[float] = None, imu_offset: Optional[float] = None,
+                    arm_at: float = 0.5) -> Lockstep:
+    """
+    Play main_job's experiment ``name`` in lockstep (validation/paper/main_job/scenarios.py).
+
+    The scenario's controller and balance_node parameters, its terrain (bumps, the ramp), its
+    pushes, joystick (as cmd_vel in physical units; the height buttons as cmd_height) and
+    actions (parameter changes, disarm, re-arm, ~/stop), timed from the start of balancing as
+    main_job times them; the IMU offset d of main_job (table.IMU_OFFSET) unless given. driven:
+    False plays it with fixed legs (the scenario's ``legs.*`` parameters dropped, no height
+    commands). Armed at ``arm_at`` [s]; the run ends ``duration`` [s] (the scenario's by
+    default) after balancing began, which is ``Lockstep.t0``. Raises RuntimeError when it does
+    not start balancing.
+    """
+    from .paper.main_job.params import joy_segments
+    from .paper.main_job.scenarios import BY_NAME
+    from .paper.table import IMU_OFFSET
+    from ..sim.robot_sim import Push, Slope
+    sc = BY_NAME[name]
+    flat = dict({'controller': sc.controller}, **sc.balance)
+    if not driven:
+        flat = {k: v for k, v in flat.items() if not k.startswith('legs.')}
+        flat['legs.driven'] = False
+    flat.update(params or {})
+    sim = {}
+    if 'bumps' in sc.sim:
+        sim['bumps'], sim['bump_height'] = sc.sim['bumps'], sc.sim['bump_height']
+    if sc.sim.get('slope.enabled'):
+        sim['slope'] = Slope(sc.sim['slope.start_x'], sc.sim['slope.length'],
+                             sc.sim['slope.angle'], sc.sim['slope.side'])
+    ls = Lockstep(flat, imu_offset=IMU_OFFSET if imu_offset is None else imu_offset, **sim)
+    ls.run(arm_at)
+    ls.arm(True)
+    ls.run(PLAY_START_LIMIT, until=lambda: ls.mode == 1)   # Mode.BALANCING
+    if ls.mode != 1:
+        raise RuntimeError('%s did not start balancing: %s' % (name, ls.events))
+    ls.t0 = t0 = ls.t
+    pushes = sorted(sc.pushes)
+    segments = joy_segments(sc) if sc.joy else []
+    heights = list(sc.height_presses) if driven else []
+    actions = sorted(sc.actions, key=lambda a: a[0])
+    steps_per_cmd = max(1, int(round(0.02 / ls.period)))   # teleop_node's 50 Hz
+    for k in range(int(round((duration or sc.duration) / ls.period))):
+        t = ls.t - t0 + 1e-9
+        while pushes and pushes[0][0] <= t:
+            _, length, fx, fy = pushes.pop(0)
+            ls.sim.pushes.append(Push(ls.sim.time, length, fx, fy))
+        held = [(v, w) for a, b, v, w in segments if a <= t < b]
+        if held and k % steps_per_cmd == 0:
+            ls.command(*held[0])
+        while heights and heights[0][0] <= t:
+            ls.command_height(heights.pop(0)[1])
+        while actions and actions[0][0] <= t:
+            _, action, value = actions.pop(0)
+            if action == 'arm':
+                ls.arm(value)
+            elif action == 'stop':
+                ls.inputs.estop = True
+            else:
+                ls.loop.apply_parameters({action: value})
+        ls.tick()
+    return ls

@@ -8,7 +8,7 @@ Torques are motor torques [N m] with the mounting direction already applied
 (core/actuation.py); positions [rad] and velocities [rad/s] are at the motor's output shaft.
 """
 from abc import ABC, abstractmethod
-from typing import Dict, Iterable, List, NamedTuple, Optional
+from typing import Dict, Iterable, List, NamedTuple, Optional, Tuple
 
 #: Largest standard (11-bit) CAN identifier.
 MAX_STANDARD_ID = 0x7FF
@@ -70,6 +70,16 @@ class MotorProtocol(ABC):
     @abstractmethod
     def decode_feedback(self, frame: Frame) -> Optional[MotorFeedback]:
         """Decode a motor's reply; None for a frame that is not one (never raises)."""
+
+    @abstractmethod
+    def command_motor_ids(self, frame: Frame) -> Tuple[int, ...]:
+        """
+        Return the IDs of the motors a frame commands, as their firmware would act on it.
+
+        Empty for anything else, replies above all (a frame that looks like a command by its
+        ID and length but is a reply is none). What tells the node that another sender on
+        the bus commands its motors (core/balance_loop.py: input_conflict). Never raises.
+        """
 
     def reply_motor_id(self, frame: Frame) -> Optional[int]:
         """

@@ -17,7 +17,7 @@ The ESC has no enable: enable_frames is empty and disable_frames commands zero c
 """
 import math
 import struct
-from typing import Dict, Iterable, List, Optional
+from typing import Dict, Iterable, List, Optional, Tuple
 
 from .base import Frame, frame_bytes, MotorFeedback, MotorProtocol
 
@@ -119,6 +119,16 @@ class DjiC620Protocol(MotorProtocol):
             rpm * (2.0 * math.pi / 60.0) / self.gear_ratio,
             current * (CURRENT_MAX / CURRENT_CODE_MAX) * self.torque_constant,
             float(temperature))
+
+    def command_motor_ids(self, frame: Frame) -> Tuple[int, ...]:
+        """
+        Return the four ESC IDs a 0x200 / 0x1FF command carries (1-4 or 5-8), else ().
+
+        Every ESC of the group takes its slot from any such frame, whoever sent it: a frame
+        for other ESCs of the group sets ours too. Feedback (0x201..0x208) is no command.
+        """
+        codes = self.decode_command(frame)
+        return () if codes is None else tuple(codes)
 
     # ---- ESC side (emulated ESCs) ----------------------------------------------------------
 

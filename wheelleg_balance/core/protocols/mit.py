@@ -16,7 +16,7 @@ This module is both sides: the host (torque_frames, decode_feedback) and, for th
 robot, the motor (decode_command, encode_reply). Per-tick encoding is int math and bytes only.
 """
 import math
-from typing import Dict, Iterable, List, NamedTuple, Optional, Union
+from typing import Dict, Iterable, List, NamedTuple, Optional, Tuple, Union
 
 from .base import Frame, frame_bytes, MAX_STANDARD_ID, MotorFeedback, MotorProtocol
 
@@ -202,6 +202,27 @@ class MitProtocol(MotorProtocol):
     def reply_motor_id(self, frame: Frame) -> Optional[int]:
         """Return byte 0 of what decode_feedback would accept as a reply, else None."""
         return self._reply_id(frame, frame_bytes(frame))
+
+    def command_motor_ids(self, frame: Frame) -> Tuple[int, ...]:
+        """
+        Return (the frame's ID,) for an 8-byte standard frame a motor acts on, else ().
+
+        A motor takes every 8-byte frame on its ID for a command (a special frame or an MIT
+        command, ``decode_command``), but an 8-byte reply has that shape too: one on master_id
+        (byte 0 = the replying motor), or on the replying motor's own ID (byte 0 = that ID:
+        some CubeMars firmware, or a motor whose master_id is its own ID). Those count as the
+        replies they are. The cost: a command whose position's high byte equals the motor ID
+        (p within 1/256 of the range above p_min + ID/256 of it) is not seen; torque-only
+        commands (p = 0: byte 0 = 0x7F) are, for every ID but 127. Special frames always count.
+        (A master_id equal to a motor's ID would make that motor take the others' replies for
+        commands: never configure it so.)
+        """
+        data = frame_bytes(frame)
+        if data is None or len(data) != 8:
+            return ()
+        if data not in _SPECIAL and frame.arbitration_id in (data[0], self.master_id):
+            return ()   # a reply: on the master ID, or on the motor's own ID
+        return (frame.arbitration_id,)
 
     def _reply_id(self, frame: Frame, data: Optional[bytes]) -> Optional[int]:
         if data is None or len(data) not in (6, 8):

@@ -216,6 +216,16 @@ class LoopBench:
         """Hand an emergency stop to the next tick (zero torque, exit: no sit-down)."""
         self.inputs.estop = True
 
+    def arm_from_rest(self) -> Any:
+        """Let the resting motors answer (exit frames every 20 ms), arm; return the request."""
+        for _ in range(12):
+            self.feed()
+            self.tick()
+        req = self.request(True)
+        self.feed()
+        self.tick()
+        return req
+
     def rearm(self, imu: Optional[Imu] = None, joints: Optional[JointState] = None) -> None:
         """Stop, feed samples (nominal ones when None) and arm again: a fresh start."""
         self.estop()

@@ -135,17 +135,18 @@ class FakeMotors:
         """Torques [N m] of the torque-only commands to ``motor`` within [since, until)."""
         return [tau for _, kind, tau in self.frames(motor, since, until) if kind == 'torque']
 
-    def zero_since(self, since: float) -> Optional[float]:
+    def zero_since(self, since: float,
+                   kinds: Tuple[str, ...] = ('torque', 'exit', 'command')) -> Optional[float]:
         """
         Time from which the motors get only zero torque or exit frames (latest over motors).
 
-        Frames before ``since`` are ignored. None when a motor got no zero frame after its last
-        non-zero torque (torque was never brought to zero).
+        Frames before ``since`` are ignored, and frames of other ``kinds`` (of ``log``). None
+        when a motor got no zero frame after its last non-zero torque (torque was never brought
+        to zero).
         """
         t_zero = since
         for motor in self.ids:
-            frames = [(t, tau) for t, kind, tau in self.frames(motor, since)
-                      if kind in ('torque', 'exit', 'command')]
+            frames = [(t, tau) for t, kind, tau in self.frames(motor, since) if kind in kinds]
             bad = [k for k, (_, tau) in enumerate(frames) if abs(tau) > TORQUE_LSB]
             first = bad[-1] + 1 if bad else 0
             if first >= len(frames):
@@ -180,6 +181,7 @@ class ErrorFrameStorm:
     def __init__(self, receiver: VirtualBus, rate: float = 4000.0):
         self._receiver = receiver
         self._queue = receiver.queue   # the senders' channel keeps putting the real frames here
+        self._queue_get = self._queue.get
         self.rate = rate
         #: Error frames the node has read.
         self.sent = 0
@@ -192,7 +194,10 @@ class ErrorFrameStorm:
 
     def start(self) -> 'ErrorFrameStorm':
         """Stand between the node's bus and its queue (the storm off until ``set_on``)."""
-        self._receiver.queue = self
+        # The queue's own get is replaced, not the queue: VirtualBus.send tells the sender's
+        # queue by identity, and a bus whose queue were another object would get its own
+        # frames back (its torque commands, then, from another sender: input_conflict).
+        self._queue.get = self.get
         return self
 
     def set_on(self, on: bool) -> None:
@@ -210,9 +215,9 @@ class ErrorFrameStorm:
             self._given += 1
             self.sent += 1
             return self._msg
-        return self._queue.get(block, timeout)
+        return self._queue_get(block, timeout)
 
     def stop(self) -> None:
-        """End the storm and give the node its own queue back."""
+        """End the storm and give the node's queue its own get back."""
         self._on_since = None
-        self._receiver.queue = self._queue
+        self._queue.__dict__.pop('get', None)

@@ -3,11 +3,12 @@ Fault scenarios on the control tick itself, in lockstep with the MuJoCo robot (n
 
 ``LoopBench`` (validation/faults/bench.py) runs the tick on a virtual clock, the plant moves one
 period per tick under the torques the tick's frames command: deterministic runs, faster than
-real time; the lifted scenario runs the whole robot (validation/lockstep.py: six emulated MIT
-motors, the legs driven) and reads the frames the tick sends. The ``context`` argument keeps
-the scenarios' common signature (unused here).
+real time; the lifted and the flipped-IMU scenarios run the whole robot (validation/lockstep.py:
+emulated MIT motors, the legs driven or fixed) and read the frames the tick sends. The
+``context`` argument keeps the scenarios' common signature (unused here).
 """
 import math
+from typing import List, Tuple
 
 from .bench import decode, LoopBench, MODE, TORQUE_LSB
 from .outcome import Outcome
@@ -131,27 +132,26 @@ def _max_step(log, t0: float, t1: float) -> float:
 #: The pick-up: the body welded to a stand this far [m] above where it balanced (0.1 m left
 #: the wheels on the floor once the unloaded legs had pushed out).
 LIFT_HEIGHT = 0.2
-#: The lifted reaction's bound [s] (issue 11: zero wheel torque within 0.1 s).
+#: The lifted reaction's bound [s] with driven legs (issue 11: zero wheel torque within 0.1 s)
+#: and with fixed legs (issue 29: 0.15 s).
 LIFT_BOUND = 0.1
+LIFT_BOUND_FIXED = 0.15
+#: Issue 29: where the controller asks little torque (below LIFT_LITTLE_TORQUE [N m] until the
+#: cut), zero torque before either free wheel passes LIFT_SLOW_SPEED [rad/s].
+LIFT_LITTLE_TORQUE = 1.0
+LIFT_SLOW_SPEED = 8.0
+#: Fixed legs (the default robot): the hips are the simulator's servos, balance_node has none.
+FIXED_LEGS = {'legs.driven': False}
 
 
-def scenario_lifted(context, tilt_deg: float = 0.0) -> Outcome:
-    """
-    Pick the balancing robot up, 0.2 m, held ``tilt_deg`` off its balance pitch (lockstep).
+def lifted_name(tilt_deg: float, driven: bool) -> str:
+    """Return the scenario's name: lifted[_fixed_legs][_tilted_<deg>]."""
+    return 'lifted' + ('' if driven else '_fixed_legs') + (
+        '_tilted_%.0f' % tilt_deg if tilt_deg else '')
 
-    The whole robot of validation/lockstep.py stands up from its tail, then its body is welded
-    to a stand 0.2 m up. Required: FAULT ``lifted``, zero torque to both wheels on every frame
-    from within 0.1 s of the pick-up, the wheels stopped, the legs holding their length (not
-    damped down to their stops), and a re-arm refused while it is held in the air.
-    """
-    from ..lockstep import Lockstep
-    from ...core.protocols.mit import MitCommand
-    out = Outcome('lifted' if not tilt_deg else 'lifted_tilted_%.0f' % tilt_deg,
-                  'picked up while balancing, '
-                  '%.0f deg off its balance pitch (MuJoCo, lockstep)' % tilt_deg,
-                  'FAULT lifted, zero wheel torque within 0.1 s, legs holding, no re-arm in '
-                  'the air')
-    ls = Lockstep(imu_offset=math.radians(2.2))
+
+def _recorded(ls) -> List[Tuple[float, int, object]]:
+    """Return the list that gets (time [s], motor ID, the frame decoded) of each frame sent."""
     bus = []
     handle = ls.motors.handle
 
@@ -159,6 +159,32 @@ def scenario_lifted(context, tilt_deg: float = 0.0) -> Outcome:
         bus.append((ls.t, frame.arbitration_id, decode(frame.arbitration_id, frame.data)))
         return handle(frame)
     ls.motors.handle = record
+    return bus
+
+
+def scenario_lifted(context, tilt_deg: float = 0.0, driven: bool = True) -> Outcome:
+    """
+    Pick the balancing robot up, 0.2 m, held ``tilt_deg`` off its balance pitch (lockstep).
+
+    The whole robot of validation/lockstep.py (legs driven, or fixed: ``legs.driven: false``
+    with the simulator's servos) stands up from its tail, then its body is welded to a stand
+    0.2 m up. Required: FAULT ``lifted``, zero torque to both wheels on every frame from within
+    0.1 s of the pick-up (fixed legs: 0.15 s, and before a free wheel passes 8 rad/s while the
+    torque stayed below 1 N m); with driven legs also the legs holding their length (not damped
+    down to their stops) and a re-arm refused while it is held in the air (fixed legs cannot
+    tell the air from the ground before arming).
+    """
+    from ..lockstep import Lockstep
+    from ...core.protocols.mit import MitCommand
+    bound = LIFT_BOUND if driven else LIFT_BOUND_FIXED
+    out = Outcome(lifted_name(tilt_deg, driven), 'picked up while balancing, %.0f deg off its '
+                  'balance pitch, legs %s (MuJoCo, lockstep)' % (
+                      tilt_deg, 'driven' if driven else 'fixed'),
+                  'FAULT lifted, zero wheel torque within %.2f s%s' % (
+                      bound, ', legs holding, no re-arm in the air' if driven else
+                      ', before a wheel passes 8 rad/s where the torque stays below 1 N m'))
+    ls = Lockstep(None if driven else FIXED_LEGS, imu_offset=math.radians(2.2))
+    bus = _recorded(ls)
     ls.run(0.5)
     ls.arm(True)
     ls.run(7.5)
@@ -169,27 +195,40 @@ def scenario_lifted(context, tilt_deg: float = 0.0) -> Outcome:
     ls.sim.hold(ls.log[-1]['theta_true'] + math.radians(tilt_deg),
                 float(ls.sim.data.qpos[2]) + LIFT_HEIGHT, float(ls.sim.data.qpos[0]))
     peak = 0.0
+    speeds = []
     for _ in range(int(round(1.0 / ls.period))):
         ls.tick()
-        peak = max([peak] + [abs(w) for w in ls.sim.wheel_velocities()])
+        speeds.append((ls.t, max(abs(w) for w in ls.sim.wheel_velocities())))
+        peak = max(peak, speeds[-1][1])
     faults = [f.code for f in ls.loop.supervisor.faults]
     out.figures['reason'] = '; '.join(f.message for f in ls.loop.supervisor.faults)
     out.check('FAULT lifted (%s)' % ','.join(faults), ls.mode == MODE['FAULT']
               and faults == ['lifted'])
     t_zero = t_lift
+    torque = 0.0
     for t, motor, cmd in bus:
         if t >= t_lift and motor in wheels and isinstance(cmd, MitCommand) \
                 and abs(cmd.torque) > TORQUE_LSB:
             t_zero = t + ls.period   # zero from the next frame on, if any
+            torque = max(torque, abs(cmd.torque))
     out.time_to_zero = t_zero - t_lift
-    out.check('zero torque to both wheels within %.0f ms of the pick-up' % (1e3 * LIFT_BOUND),
-              out.time_to_zero <= LIFT_BOUND)
+    out.check('zero torque to both wheels within %.0f ms of the pick-up' % (1e3 * bound),
+              out.time_to_zero <= bound)
     frames = [cmd for t, m, cmd in bus if t >= t_zero and m in wheels]
     out.check('zero torque frames every tick after', len(frames) >= 2 * 0.8 / ls.period)
+    # The free wheels' speed when the torque went (they coast on from there).
+    at_cut = max((w for t, w in speeds if t <= t_zero + 1e-9), default=0.0)
+    out.figures['wheel_speed_at_cut_rad_s'] = round(at_cut, 2)
+    out.figures['max_torque_nm'] = round(torque, 2)
+    if not driven and torque < LIFT_LITTLE_TORQUE:
+        out.check('little torque (%.2f N m): cut before a wheel passed %.0f rad/s (%.1f)'
+                  % (torque, LIFT_SLOW_SPEED, at_cut), at_cut < LIFT_SLOW_SPEED)
     # Without torque a free wheel coasts down on its bearing's friction alone.
     out.figures['peak_wheel_speed_rad_s'] = round(peak, 2)
     out.check("wheels never near the MIT reply's 50 rad/s (peak %.1f rad/s)" % peak,
               peak < 25.0)
+    if not driven:
+        return out
     # Held, the legs overshoot the length they had at the fault (they were extending: the
     # weight's share pushed them until then) and sag under the hanging wheels, then stay. The
     # damping of the other faults would let them run out to their stops (0.7 m).
@@ -209,4 +248,118 @@ def scenario_lifted(context, tilt_deg: float = 0.0) -> Outcome:
     reply = ls.arm_replies[-1]
     out.check('re-arm refused in the air (%s)' % reply[1], not reply[0] and 'lifted' in reply[1]
               and ls.mode == MODE['FAULT'])
+    return out
+
+
+#: The flipped-IMU scenarios: armed upright, held this far [rad] off upright until the arm;
+#: the IMU turned 180 deg about z and balance_node not told (imu_mounting_rpy [0, 0, 0]), or
+#: told so where it is not: either way its pitch sign is wrong. IMU offset d [rad] as the
+#: paper's robot.
+FLIP_PITCH = math.radians(2.0)
+FLIP_MOUNTING = [0.0, 0.0, math.pi]
+FLIP_IMU_OFFSET = math.radians(2.2)
+#: The true pitch [rad] the robot must not leave before zero torque (issue 29).
+FLIP_LIMIT = math.radians(10.0)
+
+
+def _flip_checks(out: Outcome, faults, reason: str, t_zero, theta_zero, peak) -> None:
+    out.figures['reason'] = reason
+    out.check('FAULT response alone (%s)' % ','.join(faults), faults == ['response'])
+    out.check('the reason names imu_mounting_rpy and the wheel directions',
+              'imu_mounting_rpy' in reason and 'can.left_direction' in reason
+              and 'can.right_direction' in reason)
+    out.time_to_zero = t_zero
+    if out.check('zero torque to both wheels', t_zero is not None):
+        out.figures['pitch_at_zero_deg'] = round(math.degrees(theta_zero), 2)
+        out.figures['peak_pitch_before_zero_deg'] = round(math.degrees(peak), 2)
+        out.check('zero torque before the true pitch left +-%.0f deg (%.1f deg at most)'
+                  % (math.degrees(FLIP_LIMIT), math.degrees(peak)), peak < FLIP_LIMIT)
+
+
+def scenario_imu_flipped(context, pitch: float = FLIP_PITCH, driven: bool = False,
+                         imu_offset: float = FLIP_IMU_OFFSET) -> Outcome:
+    """
+    Arm the robot upright with its IMU's pitch sign wrong (whole robot, lockstep).
+
+    The body is held on a stand ``pitch`` [rad] off upright, wheels on the floor, while the
+    motors come up; armed, it is let go. balance_node is told imu_mounting_rpy [0, 0, pi], the
+    MuJoCo IMU sits straight: theta~, theta_dot and the accelerometer's x all read the wrong
+    way round and the controller drives the fall it should stop. Required: FAULT ``response``
+    (not ``lifted`` or another), its reason naming ``imu_mounting_rpy`` and
+    ``can.left_direction`` / ``can.right_direction``, zero torque to both wheels on the bus
+    before the true pitch leaves +-10 deg. time_to_zero is from the arm.
+    """
+    from ..lockstep import Lockstep
+    from ...core.protocols.mit import MitCommand
+    params = {'imu_mounting_rpy': FLIP_MOUNTING}
+    if not driven:
+        params.update(FIXED_LEGS)
+    out = Outcome('imu_flipped%s' % ('' if driven else '_fixed_legs'),
+                  'armed upright at %.0f deg with the IMU turned 180 deg about z, legs %s '
+                  '(MuJoCo, lockstep)' % (math.degrees(pitch), 'driven' if driven else 'fixed'),
+                  'FAULT response, zero wheel torque before the true pitch leaves +-10 deg')
+    ls = Lockstep(params, imu_offset=imu_offset, pose='pitch' if driven else None)
+    bus = _recorded(ls)
+    ls.sim.hold(pitch)   # wheels on the floor
+    ls.run(0.1)
+    ls.arm(True)
+    ls.tick()
+    ls.sim.release()
+    if not out.check('armed upright (%s)' % (ls.arm_replies[-1:],),
+                     ls.mode == MODE['BALANCING']):
+        return out
+    t_arm = ls.t - ls.period
+    ls.run(0.4, until=lambda: ls.mode == MODE['FAULT'])
+    ls.run(0.05)
+    wheels = ls.loop.motors.ids
+    t_zero = None
+    for t, motor, cmd in bus:
+        if t >= t_arm and motor in wheels and isinstance(cmd, MitCommand):
+            if abs(cmd.torque) > TORQUE_LSB:
+                t_zero = None
+            elif t_zero is None:
+                t_zero = t
+    before = [row for row in ls.log if t_arm <= row['t'] <= (t_zero or ls.t)]
+    theta = before[-1]['theta_true'] if before else math.nan
+    peak = max(abs(row['theta_true']) for row in before) if before else math.inf
+    _flip_checks(out, [f.code for f in ls.loop.supervisor.faults],
+                 '; '.join(f.message for f in ls.loop.supervisor.faults),
+                 None if t_zero is None else t_zero - t_arm, theta, peak)
+    return out
+
+
+def scenario_imu_flipped_plant(context, pitch: float = FLIP_PITCH) -> Outcome:
+    """
+    Arm the fault rig's MuJoCo plant with the IMU turned round (LoopBench, servo legs).
+
+    The plant stands at ``pitch`` [rad] with its IMU 2.2 deg off; the bench arms balance_node's
+    tick (imu_mounting_rpy [0, 0, pi]) and closes the loop through the emulated wheel motors.
+    The rig's IMU messages carry no linear acceleration (zeros). Required as in
+    ``scenario_imu_flipped``; time_to_zero is from the arm.
+    """
+    out = Outcome('imu_flipped_plant', 'armed upright at %.0f deg with the IMU turned 180 deg '
+                  "about z (the fault rig's MuJoCo plant, lockstep)" % math.degrees(pitch),
+                  'FAULT response, zero wheel torque before the true pitch leaves +-10 deg')
+    plant = MujocoPlant('pitch', pitch, imu_offset=FLIP_IMU_OFFSET)
+    bench = LoopBench(imu_mounting_rpy=FLIP_MOUNTING)
+    bench.feed()
+    bench.rearm()
+    rows = []
+    t_zero = None
+    for _ in range(int(round(0.4 / bench.period))):
+        (t, torques, mode), = bench.closed_loop(plant, bench.period)
+        theta = plant.truth()['theta']
+        zero = all(abs(v) <= TORQUE_LSB for v in torques.values())
+        if zero and t_zero is None:
+            t_zero = len(rows) * bench.period
+        elif not zero:
+            t_zero = None
+        rows.append(theta)
+        if mode == MODE['FAULT'] and t_zero is not None:
+            break
+    n = len(rows) if t_zero is None else int(round(t_zero / bench.period)) + 1
+    sup = bench.loop.supervisor
+    _flip_checks(out, [f.code for f in sup.faults], '; '.join(f.message for f in sup.faults),
+                 t_zero, rows[n - 1] if rows else math.nan,
+                 max((abs(v) for v in rows[:n]), default=math.inf))
     return out

@@ -25,7 +25,10 @@ class Outcome:
     The result of one scenario.
 
     checks: (what was required, whether it held); time_to_zero: fault to zero torque on the bus
-    [s] (None: not applicable or not reached); figures: other measured numbers.
+    [s] (None: not applicable or not reached); figures: other measured numbers; reactions:
+    (check text, time the reaction took [s] or None when it never came, its bound [s]) of
+    every timed reaction check; injected_at: monotonic time [s] the fault was injected (None:
+    the scenario does not say).
     """
 
     name: str
@@ -34,10 +37,21 @@ class Outcome:
     checks: List[Tuple[str, bool]] = field(default_factory=list)
     time_to_zero: Optional[float] = None
     figures: Dict[str, object] = field(default_factory=dict)
+    reactions: List[Tuple[str, Optional[float], float]] = field(default_factory=list)
+    injected_at: Optional[float] = None
 
     def check(self, text: str, ok) -> bool:
         self.checks.append((text, bool(ok)))
         return bool(ok)
+
+    def reaction(self, text: str, elapsed: Optional[float], bound: float) -> bool:
+        """Check that a reaction came within ``bound`` [s]: ``elapsed`` [s], None: never."""
+        self.reactions.append((text, elapsed, bound))
+        return self.check(text, elapsed is not None and elapsed <= bound)
+
+    def injected(self) -> None:
+        """Mark the moment of the injection (the machine's contention is judged before it)."""
+        self.injected_at = time.monotonic()
 
     @property
     def handled(self) -> bool:
@@ -70,15 +84,15 @@ def _zero_reaction(out: Outcome, rig: Rig, t_fault: float, bound: float, code: s
     out.check('non-zero torque just before the fault (so zero torque is a reaction)',
               _torque_before(motors, t_fault))
     t_mode = robot.wait_mode('FAULT', bound + 1.0)
-    out.check('~/state reports FAULT', t_mode is not None)
-    if t_mode is None:
+    text = '%s %.0f ms of the fault' % (REACTION_TIME_CHECK, 1e3 * bound)
+    if not out.check('~/state reports FAULT', t_mode is not None):
+        out.reaction(text, None, bound)   # the reaction never came
         return
     out.check('diagnostics name the fault %r' % code, robot.wait_fault_code(code, 2.0))
     time.sleep(0.3)
     t_zero = motors.zero_since(t_fault)
     out.time_to_zero = None if t_zero is None else t_zero - t_fault
-    out.check('%s %.0f ms of the fault' % (REACTION_TIME_CHECK, 1e3 * bound),
-              out.time_to_zero is not None and out.time_to_zero <= bound)
+    out.reaction(text, out.time_to_zero, bound)
     if not_before:
         out.check('but not before %.0f ms' % (1e3 * not_before),
                   out.time_to_zero is not None and out.time_to_zero >= not_before)

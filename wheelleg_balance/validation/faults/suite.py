@@ -7,7 +7,7 @@ from rclpy.context import Context
 from . import lockstep as ls, scenarios as sc
 from .matrices import MATRICES, matrix_scenario, scenario_joy_fields
 from .outcome import Outcome
-from ..contention import CpuContention
+from ..contention import CpuContention, CpuHistory
 
 SCENARIOS: Dict[str, Callable[[Context], Outcome]] = {
     'imu_silent': sc.scenario_imu_silent,
@@ -23,6 +23,7 @@ SCENARIOS: Dict[str, Callable[[Context], Outcome]] = {
     'cmd_vel_future': sc.scenario_cmd_vel_future,
     'second_imu_publisher': sc.scenario_second_imu_publisher,
     'second_cmd_vel_publisher': sc.scenario_second_cmd_vel_publisher,
+    'second_commander': sc.scenario_second_commander,
     'joy_fields': scenario_joy_fields,
     'motor_silent': sc.scenario_motor_silent,
     'reply_unknown_id': sc.scenario_unknown_reply_id,
@@ -44,12 +45,21 @@ SCENARIOS: Dict[str, Callable[[Context], Outcome]] = {
     'recovery_rearm': ls.scenario_recovery_needs_rearm,
     'lifted': ls.scenario_lifted,
     'lifted_tilted_15': lambda context: ls.scenario_lifted(context, 15.0),
+    # The default robot: legs not driven (issue 29).
+    'lifted_fixed_legs': lambda context: ls.scenario_lifted(context, 0.0, driven=False),
+    'lifted_fixed_legs_tilted_3': lambda context: ls.scenario_lifted(context, 3.0, driven=False),
+    'lifted_fixed_legs_tilted_15':
+        lambda context: ls.scenario_lifted(context, 15.0, driven=False),
+    'imu_flipped_fixed_legs': ls.scenario_imu_flipped,
+    'imu_flipped': lambda context: ls.scenario_imu_flipped(context, driven=True),
+    'imu_flipped_plant': ls.scenario_imu_flipped_plant,
     'sigint_shutdown': sc.scenario_sigint,
     'sigterm_shutdown': sc.scenario_sigterm,
     'sighup_shutdown': sc.scenario_sighup,
     'sigquit_shutdown': sc.scenario_sigquit,
     'control_process_stalled': sc.scenario_control_stalled,
     'control_process_killed': sc.scenario_control_killed,
+    'balance_node_killed': sc.scenario_node_killed,
 }
 # The timeout scenarios again at the robot's own timeouts (50 ms), not the rig's doubled ones.
 SCENARIOS.update({'%s_%dms' % (name, round(1e3 * sc.ROBOT_TIMEOUTS['imu_timeout'])):
@@ -60,15 +70,27 @@ SCENARIOS.update({name: matrix_scenario(name, kind, cases, params)
                   for name, (kind, cases, params) in MATRICES.items()})
 
 
+#: The window before the injection over which the machine's contention is judged [s].
+BEFORE_INJECTION = 2.0
+
+
 def run_measured(name: str, context: Context) -> Outcome:
     """
-    Run scenario ``name``; its figures also get the machine's CPU contention over the run.
+    Run scenario ``name``; its figures also get the machine's CPU contention.
 
-    ``cpu_pressure_pct`` and ``cpu_steal_pct`` (validation/contention.py): what a late
-    reaction can be attributed to.
+    ``cpu_pressure_pct`` and ``cpu_steal_pct`` over the whole run, and where the scenario marks
+    its injection, ``cpu_pressure_before_pct`` and ``cpu_steal_before_pct`` over the
+    BEFORE_INJECTION seconds before it (validation/contention.py): what a failure can be
+    attributed to.
     """
     contention = CpuContention()
-    outcome = SCENARIOS[name](context)
+    with CpuHistory() as history:
+        outcome = SCENARIOS[name](context)
+        if outcome.injected_at is not None:
+            before = history.window(outcome.injected_at - BEFORE_INJECTION,
+                                    outcome.injected_at)
+            outcome.figures['cpu_pressure_before_pct'] = before['cpu_pressure_pct']
+            outcome.figures['cpu_steal_before_pct'] = before['cpu_steal_pct']
     outcome.figures.update(contention.figures())
     return outcome
 
