@@ -115,11 +115,16 @@ def test_remapping_the_node_remaps_its_sensor_topics(make_node, context):
 
 
 def test_the_state_and_the_joints_cross_the_link_in_one_message():
-    from wheelleg_balance.core.balance_loop import STATE_FIELDS
+    from wheelleg_balance.core import tick_io
     from wheelleg_balance.nodes import control_link as L
     ros_end, loop_end = (L.Link(s) for s in L.socket_pair())
-    n = len(STATE_FIELDS) + len(L.ODOM_FIELDS) + 2
-    values = [0.5 * k for k in range(n)]
+    state = tick_io.LoopState(**{f: 0.5 * k for k, f in enumerate(tick_io.STATE_FIELDS)})
+    odom = tick_io.Odom(x=2.0, yaw_rate=-0.5)
+    values = tick_io.state_frame(state, odom, 12.5, tick_io.PUBLISH_ODOM)
+    assert len(values) == len(tick_io.FRAME_FIELDS)
+    assert values[tick_io.MODE] == 0.5 * tick_io.MODE and values[tick_io.TIME] == 12.5
+    assert values[tick_io.ODOM] == [2.0, 0.0, 0.0, 0.0, -0.5]
+    assert values[tick_io.FLAGS] == tick_io.PUBLISH_ODOM
     joints = [float(k) for k in range(30)]   # six motors and four knees: 3 x 10 values
     assert loop_end.send_state(values, joints) and loop_end.send_state(values)
     received = [(tag, [list(part) for part in payload]) for tag, payload in ros_end.receive()]

@@ -36,9 +36,8 @@ One tick, in order (docs/architecture.md draws it):
    every few ticks, exit frames that keep the motors' replies (and so their liveness and the
    wheel and hip readings) coming while they rest.
 """
-from dataclasses import dataclass, field, fields
 import math
-from typing import Any, Dict, List, Mapping, NamedTuple, Optional, Tuple
+from typing import Any, Dict, List, Mapping, Optional, Tuple
 
 import numpy as np
 
@@ -58,11 +57,13 @@ from .reference import ReferenceShaper
 from .response import MAX_PITCH as RESPONSE_PITCH, ResponseCheck
 from .safety import COMMANDING, IMU_STALE, INPUT_CONFLICT, LEGS, LIFTED, LOOP_STALL, Mode, \
     MOTOR_ERROR, MOTOR_REBOOTED, OVER_TEMPERATURE, SafetyLimits, SafetySupervisor, SensorSnapshot
-from .safety import ENCODER_MISMATCH
-from .safety import RESPONSE
+from .safety import ENCODER_MISMATCH, RESPONSE
 from .schema import with_changes
-from .sensors import ImuReader, ImuSample, JointSample, JointStateReader
+from .sensors import ImuReader, JointSample, JointStateReader
 from .sit_down import BRAKE, DONE, FOLD, SitDown, SitDownConfig
+# The tick's inputs and outputs (imported from here by older callers too).
+from .tick_io import CmdHeight, CmdVel, LoopState, Odom, STATE_FIELDS, TickInputs, \
+    TickResult  # noqa: F401
 from .wheel_state import WheelState
 
 LEFT_WHEEL = 'left_wheel'
@@ -87,21 +88,6 @@ RAISE_KI = 3.0
 RAISE_LIMIT = 0.04
 
 
-class CmdVel(NamedTuple):
-    """The newest cmd_vel: receipt time [s], x_dot* [m/s], yaw rate* [rad/s, + turns left]."""
-
-    t: float
-    x_dot: float
-    yaw_rate: float
-
-
-class CmdHeight(NamedTuple):
-    """The newest cmd_height: receipt time [s], the height l* [m]."""
-
-    t: float
-    height: float
-
-
 #: auto_arm waits until the ticks have come without a gap beyond the sensor timeouts for this
 #: long [s]. In lockstep (clock_source imu_stamp) the first samples can come as a burst of old
 #: stamps: a tick armed on one of them and the next, 0.38 s of stamps later, faulted the motors
@@ -115,124 +101,6 @@ FOREIGN_COMMAND_HOLD = 1.0
 #: What a command frame this node did not send most likely is, for a fault or refusal reason.
 ANOTHER_SENDER = ('another sender on the bus (another balance_node, a test script, a second '
                   'computer?)')
-
-
-@dataclass
-class TickInputs:
-    """
-    What arrived since the last tick (the caller fills it and clears it after the tick).
-
-    imu, joints: samples in arrival order; frames: (monotonic receipt time [s], Frame) of the
-    CAN bus (both buses when the legs have their own: each motor set takes its own IDs);
-    cmd_vel, cmd_height: the newest command or None; arm: True / False for an operator's arm /
-    disarm request, None for none; estop: an emergency stop (zero torque and exit motor mode at
-    once, no sit-down); params: parameter changes {name: value}, already validated.
-    guarded: a state, not an event (``clear`` leaves it): False while what guards the process
-    (balance_node's watchdog, nodes/watchdog.py) is not watching: arming is refused and
-    auto_arm waits. conflicts: a state too, {input: why}: inputs with a publisher that is not
-    the robot's own (balance_node's graph check, nodes/input_guard.py). A conflict on a sensor
-    ('imu', 'joint_states') refuses arming and is a FAULT while commanding; one on a command
-    ('cmd_vel', 'cmd_height') drops that command (counted as rejected): it then times out.
-    imu_silent: why the caller's own clock found the IMU silent where the tick's time cannot
-    (on IMU stamps, lockstep: no sample for ``lockstep_wall_timeout`` of wall time, so no
-    tick's time moved): FAULT imu_stale with it while commanding; '' none (an event).
-    """
-
-    imu: List[ImuSample] = field(default_factory=list)
-    joints: List[JointSample] = field(default_factory=list)
-    frames: List[Tuple[float, Frame]] = field(default_factory=list)
-    cmd_vel: Optional[CmdVel] = None
-    cmd_height: Optional[CmdHeight] = None
-    arm: Optional[bool] = None
-    estop: bool = False
-    params: Dict[str, Any] = field(default_factory=dict)
-    guarded: bool = True
-    conflicts: Dict[str, str] = field(default_factory=dict)
-    imu_silent: str = ''
-
-    def clear(self) -> None:
-        """Empty every input (the lists are reused)."""
-        self.imu.clear()
-        self.joints.clear()
-        self.frames.clear()
-        self.cmd_vel = None
-        self.cmd_height = None
-        self.arm = None
-        self.estop = False
-        self.params = {}
-        self.imu_silent = ''
-
-
-@dataclass
-class LoopState:
-    """
-    What ~/state publishes (docs/interface.md), one value per field, in this order.
-
-    theta: IMU pitch theta~ [rad]; theta_dot [rad/s]; x: travel since arming [m]; x_dot [m/s];
-    yaw_rate [rad/s]; d_hat: IMU offset estimate [rad]; l: height used [m]; u: force applied
-    [N]; tau_left, tau_right: wheel torques commanded [N m]; controller: index into
-    CONTROLLER_NAMES of the active controller; mode: core/safety.Mode the commands were made in;
-    x_dot_ref, yaw_rate_ref: the shaped references [m/s, rad/s]; roll [rad]; l_ref: the shaped
-    height reference [m]; l_target: the commanded height [m].
-    """
-
-    theta: float = math.nan
-    theta_dot: float = math.nan
-    x: float = 0.0
-    x_dot: float = 0.0
-    yaw_rate: float = 0.0
-    d_hat: float = 0.0
-    l: float = math.nan
-    u: float = 0.0
-    tau_left: float = 0.0
-    tau_right: float = 0.0
-    controller: float = 0.0
-    mode: float = 0.0
-    x_dot_ref: float = 0.0
-    yaw_rate_ref: float = 0.0
-    roll: float = math.nan
-    l_ref: float = math.nan
-    l_target: float = math.nan
-
-    def values(self) -> List[float]:
-        """Return the fields' values in STATE_FIELDS order."""
-        return [float(getattr(self, name)) for name in STATE_FIELDS]
-
-
-#: The names of ~/state's values, in order.
-STATE_FIELDS = tuple(f.name for f in fields(LoopState))
-
-
-@dataclass
-class Odom:
-    """The planar odometry: pose (x, y [m], yaw [rad]) and twist (x_dot [m/s], yaw rate)."""
-
-    x: float = 0.0
-    y: float = 0.0
-    yaw: float = 0.0
-    x_dot: float = 0.0
-    yaw_rate: float = 0.0
-
-
-@dataclass
-class TickResult:
-    """
-    What one tick produced (the loop reuses one instance).
-
-    frames: to send on the wheels' bus now, in order; leg_frames: the hips' (on the legs' bus,
-    or after ``frames`` on the one bus); state, odom: to publish; joints: (position, velocity,
-    effort) per name of ``BalanceLoop.joint_names`` (NaN where unknown); arm_reply: (success,
-    message) of an arm/disarm request, known once ``report_send`` has seen the frames go out;
-    events: (level, text) lines to log ('info', 'warn', 'error').
-    """
-
-    frames: List[Frame] = field(default_factory=list)
-    leg_frames: List[Frame] = field(default_factory=list)
-    state: LoopState = field(default_factory=LoopState)
-    odom: Odom = field(default_factory=Odom)
-    joints: Tuple[List[float], List[float], List[float]] = ([], [], [])
-    arm_reply: Optional[Tuple[bool, str]] = None
-    events: List[Tuple[str, str]] = field(default_factory=list)
 
 
 def build_protocol(cfg: BalanceConfig) -> MotorProtocol:

@@ -45,14 +45,16 @@ from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension
 from std_srvs.srv import SetBool, Trigger
 
 from . import control_link as L, input_guard, lean, sensor_intake, watchdog
-from .control_process import ControlRunner, PUBLISH_ODOM, PUBLISH_STATE
+from .control_process import ControlRunner
 from .diagnostics import diagnostic_array
 from .params import load, ParameterGuard
 from .transforms import TfPublisher
-from ..core.balance_loop import CmdHeight, CmdVel, joint_names, STATE_FIELDS
+from ..core.balance_loop import joint_names
 from ..core.config import BalanceConfig
 from ..core.safety import Mode
 from ..core.schema import to_flat
+from ..core.tick_io import CmdHeight, CmdVel, FLAGS, MODE, N_STATE, ODOM, PUBLISH_ODOM, \
+    PUBLISH_STATE, STATE_FIELDS
 from ..processes import Child, end_process, StartError
 
 #: How long the node waits for the control loop to start [s] (imports numpy and scipy).
@@ -63,8 +65,6 @@ CONTROL_MODULE = 'wheelleg_balance.nodes.control_process'
 ARM_TIMEOUT = 1.0
 #: A status older than this [s] means the control loop is not alive (it sends ten a second).
 ALIVE_LIMIT = 0.5
-_N_STATE = len(STATE_FIELDS)
-_MODE = STATE_FIELDS.index('mode')
 
 
 class BalanceNode(Node):
@@ -112,7 +112,7 @@ class BalanceNode(Node):
         """Create the publishers and their reused messages."""
         self._state_msg = Float64MultiArray()
         self._state_msg.layout.dim = [MultiArrayDimension(
-            label=','.join(STATE_FIELDS), size=_N_STATE, stride=_N_STATE)]
+            label=','.join(STATE_FIELDS), size=N_STATE, stride=N_STATE)]
         self._state_pub = self._publisher(Float64MultiArray, '~/state')
         self._odom_msg = self._make_odom()
         self._odom_pub = self._publisher(Odometry, 'odom')
@@ -264,7 +264,7 @@ class BalanceNode(Node):
     def _on_message(self, tag: bytes, payload) -> None:
         if tag == L.STATE:
             values, joints = payload
-            self._loop_mode = int(values[_MODE])
+            self._loop_mode = int(values[MODE])
             if not self.context.ok() or self._closing.is_set():
                 return
             stamp = self.get_clock().now().to_msg()
@@ -301,11 +301,11 @@ class BalanceNode(Node):
 
     def _publish_state(self, values, stamp) -> None:
         # values: array('d') (nodes/control_link.py), which float64[] fields take unchecked.
-        flags = int(values[-1])
+        flags = int(values[FLAGS])
         if flags & PUBLISH_STATE:
-            self._state_msg.data = values[:_N_STATE]
+            self._state_msg.data = values[:N_STATE]
             self._state_pub.publish(self._state_msg)
-        x, y, yaw, x_dot, yaw_rate = values[_N_STATE:_N_STATE + 5]
+        x, y, yaw, x_dot, yaw_rate = values[ODOM]
         if flags & PUBLISH_STATE:
             self._tf.publish(stamp, values, (x, y, yaw))
         if flags & PUBLISH_ODOM:

@@ -22,8 +22,8 @@ import struct
 import sys
 from typing import Any, Callable, Iterator, Optional, Tuple
 
-from ..core.balance_loop import CmdHeight, CmdVel, STATE_FIELDS
 from ..core.sensors import ImuSample, JointSample
+from ..core.tick_io import CmdHeight, CmdVel, FRAME_FIELDS
 
 # Tags: ROS side -> control loop.
 IMU = b'I'
@@ -46,11 +46,10 @@ _IMU = struct.Struct('<dqq4d?7d')
 _JOINTS = struct.Struct('<d?dd?d')
 _CMD = struct.Struct('<3d')
 _CMD_HEIGHT = struct.Struct('<2d')
-#: STATE payload: the STATE_FIELDS, then odom x, y, yaw, x_dot, yaw_rate, then the tick's
-#: monotonic time [s] and the publication flags (nodes/control_process.py); then, when the
-#: joint_states are due, the published joints' positions, velocities and efforts.
-ODOM_FIELDS = ('x', 'y', 'yaw', 'x_dot', 'yaw_rate')
-_STATE = struct.Struct('<%dd' % (len(STATE_FIELDS) + len(ODOM_FIELDS) + 2))
+#: STATE payload: the state frame (core/tick_io.py: the state, the odometry, the tick's time,
+#: the publication flags); then, when the joint_states are due, the published joints'
+#: positions, velocities and efforts.
+_STATE = struct.Struct('<%dd' % len(FRAME_FIELDS))
 
 #: Largest message [bytes]: a status dict of many motors stays below this.
 MAX_MESSAGE = 65536
@@ -120,7 +119,7 @@ class Link:
 
     def send_state(self, values, joints=()) -> bool:
         """
-        Send the state: STATE_FIELDS values, the odometry, the tick time, the flags.
+        Send a state frame (core/tick_io.py ``state_frame``).
 
         joints: positions + velocities + efforts of the published joints (floats), in the same
         message (one wake-up of the ROS side, not two); received as the pair (state, joints).

@@ -54,6 +54,7 @@ from ..core.config import BalanceConfig
 from ..core.deadline import DeadlineLoop, TIMING_WINDOW, window_stats
 from ..core.safety import COMMANDING, Mode
 from ..core.schema import from_flat
+from ..core.tick_io import PUBLISH_ODOM, PUBLISH_STATE, state_frame
 from ..processes import run_child, StartError
 
 #: Missed deadlines served late, back to back, before a stall is skipped. Catching up keeps the
@@ -65,9 +66,6 @@ STATUS_PERIOD = 0.1
 #: With clock_source imu_stamp: how long the loop waits for a sample before it serves the link
 #: alone (commands, the intake's readiness, a status for /diagnostics) [s, wall clock].
 IDLE_WAKE = 0.02
-#: Flags of a STATE message: which topics the ROS side publishes from it.
-PUBLISH_STATE = 1
-PUBLISH_ODOM = 2
 
 
 def decimation(rate: float, period: float) -> int:
@@ -353,13 +351,11 @@ class ControlRunner:
         if self._odom_every and n % self._odom_every == 0:
             flags |= PUBLISH_ODOM
         if flags:
-            o = result.odom
             joints = ()
             if flags & PUBLISH_STATE:
                 pos, vel, eff = self.loop.joint_values(now)
                 joints = pos + vel + eff
-            self.link.send_state(result.state.values() + [o.x, o.y, o.yaw, o.x_dot,
-                                                          o.yaw_rate, now, flags], joints)
+            self.link.send_state(state_frame(result.state, result.odom, now, flags), joints)
 
     def _on_stall(self, lateness: float) -> None:
         self.link.send_object(L.EVENT, ('warn', 'control loop: a tick came %.1f ms late'

@@ -9,9 +9,9 @@ install, but not of every test environment) the node says so once and goes on wi
 from geometry_msgs.msg import TransformStamped
 from rclpy.qos import QoSDurabilityPolicy, QoSHistoryPolicy, QoSProfile
 
-from ..core.balance_loop import STATE_FIELDS
 from ..core.config import BalanceConfig
 from ..core.frames import base_footprint_to_base_link, odom_to_base_footprint
+from ..core.tick_io import STATE_FIELDS
 
 _THETA, _D_HAT, _L = (STATE_FIELDS.index(n) for n in ('theta', 'd_hat', 'l'))
 
