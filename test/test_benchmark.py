@@ -10,6 +10,7 @@ import json
 import math
 import os
 import pathlib
+import shutil
 import subprocess
 import sys
 import threading
@@ -20,7 +21,7 @@ import pytest
 from wheelleg_balance.core import realtime
 from wheelleg_balance.core.pipeline import CONTROLLER_NAMES
 from wheelleg_balance.validation.bench import benchmark, bus as bench_bus, \
-    profiling as bench_profile
+    profiling as bench_profile, replay as bench_replay
 from wheelleg_balance.validation.bench.node import probe_latencies
 from wheelleg_balance.validation.bench.stats import period_stats, served_deadlines
 
@@ -276,6 +277,73 @@ def test_parse_args_quick_and_parts():
     assert benchmark.parse_args(['--bus', 'udp_multicast']).bus == 'udp_multicast'
     with pytest.raises(SystemExit):
         benchmark.parse_args(['--bus', 'socketcan'])   # no SocketCAN to benchmark on here
+
+
+# ------------------------------------------------------------------------ the replay part
+
+def test_parse_args_replay_part_and_its_trees():
+    args = benchmark.parse_args(['--parts', 'replay', '--before-tree', '/tmp/b',
+                                 '--replay-tree', '/tmp/c', '--replay-tree', '/tmp/d'])
+    assert args.parts == ['replay'] and 'replay' in benchmark.PARTS
+    assert (args.before_tree, args.replay_tree) == ('/tmp/b', ['/tmp/c', '/tmp/d'])
+    assert benchmark.parse_args([]).replay_tree == []
+
+
+def test_replay_part_without_valgrind_is_one_skip_line(monkeypatch):
+    real = shutil.which
+    monkeypatch.setattr(shutil, 'which', lambda name: None if name == 'valgrind'
+                        else real(name))
+    report = bench_replay.bench([None])
+    assert set(report) == {'skipped'} and 'valgrind' in report['skipped']
+    out = io.StringIO()
+    bench_replay.print_report(report, out.write)
+    assert out.getvalue().strip().count('\n') == 0   # one line
+    assert out.getvalue().strip().startswith('replay: skipped: valgrind not found')
+    assert bench_replay.targets(report) == []
+    with pytest.raises(FileNotFoundError):
+        bench_replay.count(None, window=('wheels', 'drive', 2))
+
+
+def test_replay_part_target_and_table():
+    report = {'window': ['six', 'drive', 1000], 'recording': '0714d2b' + '0' * 33,
+              'trees': [{'label': label, 'instructions_per_tick': n, 'wall_median_us': 1.0,
+                         'wall_mean_us': 1.0, 'as_recorded_share': 1.0, 'modes': [1],
+                         'dropped': []}
+                        for label, n in (('this tree', 200e3), ('b4848ea', 660e3))]}
+    row, = bench_replay.targets(report)
+    assert row['value'] == pytest.approx(200 / 660) and row['limit'] == 0.35 and row['pass']
+    report['trees'][0]['instructions_per_tick'] = 240e3
+    assert not bench_replay.targets(report)[0]['pass']
+    out = io.StringIO()
+    bench_replay.print_report(report, out.write)
+    assert '240000' in out.getvalue() and 'b4848ea' in out.getvalue()
+
+
+def test_callgrind_totals_are_read(tmp_path):
+    path = tmp_path / 'callgrind.out'
+    path.write_text('version: 1\ncmd: python\nevents: Ir\nfn=(1) x\n0 5\nsummary: 1234\n'
+                    'totals: 1234\n')
+    assert bench_replay.callgrind_total(str(path)) == 1234
+    path.write_text('events: Ir\n')
+    with pytest.raises(ValueError):
+        bench_replay.callgrind_total(str(path))
+
+
+@pytest.mark.skipif(shutil.which('valgrind') is None,
+                    reason='valgrind not installed (the replay part then skips itself)')
+def test_replay_counts_the_tick_alone_on_a_tiny_window():
+    """Ten ticks of the wheels balancing: the count is per tick and of the tick only."""
+    window = ('wheels', 'drive', 10)
+    result = bench_replay.count(None, mode='callgrind', window=window)
+    assert result['ticks'] == 10 and result['modes'] == [1]
+    # The interpreter's start, the imports, the decoding and the 700 ticks before the window
+    # are several 10^9 instructions: counted, they would swamp the ten ticks.
+    assert 1e5 < result['instructions_per_tick'] < 5e6, result
+    assert result['instructions'] == pytest.approx(10 * result['instructions_per_tick'])
+    timed = bench_replay.count(None, mode='time', window=window, repeat=1)
+    assert 0 < timed['wall_median_us'] < 1e5
+    if bench_replay.blas_cores() == bench_replay.load()['blas_cores']:
+        assert timed['as_recorded_share'] == 1.0
 
 
 def test_before_param_measures_this_tree_with_other_parameters():

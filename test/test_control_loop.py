@@ -540,13 +540,13 @@ def test_on_imu_stamps_the_loop_ticks_once_per_sample_at_its_stamp():
     from wheelleg_balance.core.schema import with_changes
     from wheelleg_balance.core.sensors import ImuSample
     from wheelleg_balance.nodes import control_link as L
-    from wheelleg_balance.nodes.control_process import ControlRunner
+    from wheelleg_balance.nodes.control_process import make_runner
 
     cfg = with_changes(BalanceConfig(), {'clock_source': 'imu_stamp'})
     ros_end, loop_end = L.socket_pair()
     intake_end, loop_sensor_end = L.socket_pair()
-    runner = ControlRunner(cfg, VirtualBus(channel='wlb-%s' % uuid.uuid4().hex),
-                           L.Link(loop_end), L.Link(loop_sensor_end), realtime_options=False)
+    runner = make_runner(cfg, VirtualBus(channel='wlb-%s' % uuid.uuid4().hex),
+                         L.Link(loop_end), L.Link(loop_sensor_end), realtime_options=False)
     thread = threading.Thread(target=runner.run, daemon=True)
     thread.start()
     sensors = L.Link(intake_end)

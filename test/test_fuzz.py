@@ -457,7 +457,7 @@ class SixMotorBench(fb.LoopBench):
             m.feedback = None
         for w in self.loop.wheel_states:
             w.reset()
-        self.loop._foreign_last = None   # nor another sender's commands before it
+        self.loop.sensing.foreign_last = None   # nor another sender's commands before it
         self.feed_nominal()
         req = self.request(True)
         self.tick()
@@ -473,7 +473,7 @@ def six_bench(follow=False, **params):
     for _ in range(int(0.6 / b.period)):   # RISE_TIME 0.5 s upright: risen
         b.feed_nominal()
         b.tick()
-    assert b.mode == fb.MODE['BALANCING'] and not b.loop._rising
+    assert b.mode == fb.MODE['BALANCING'] and not b.loop.balancing.rising
     return b
 
 
@@ -640,7 +640,7 @@ def test_fuzz_hip_motor_replies(six_reply_bench, reply, theta):
         limit *= derate_share(hot, model.temp_derate, model.temp_max)
     check_six(b, frames, limit)
     if b.mode == fb.MODE['BALANCING']:   # nothing it balances on is non-finite or implausible
-        snap, lim = b.loop._snapshot, b.loop.cfg.safety
+        snap, lim = b.loop.sensing.snapshot, b.loop.cfg.safety
         assert snap.finite() and b.loop.legs.state.valid
         assert abs(snap.wheel_vel_left) <= lim.max_wheel_velocity and \
             abs(snap.wheel_vel_right) <= lim.max_wheel_velocity
@@ -717,7 +717,7 @@ def test_fuzz_cmd_height(height_bench, height, t):
     b.balancing()
     model = b.loop.cfg.model
     lo, hi = model.height_min, model.height_max
-    before, rejected = b.loop.last_result.state.l_target, b.loop.rejected_cmd_height
+    before, rejected = b.loop.last_result.state.l_target, b.loop.balancing.rejected_cmd_height
     b.feed_nominal()
     b.inputs.cmd_height = CmdHeight(t, Float64(data=height).data)   # as balance_node takes it
     frames = b.tick()
@@ -726,9 +726,9 @@ def test_fuzz_cmd_height(height_bench, height, t):
     state = b.loop.last_result.state
     if math.isfinite(height):
         assert state.l_target == min(max(height, lo), hi)
-        assert b.loop.rejected_cmd_height == rejected
+        assert b.loop.balancing.rejected_cmd_height == rejected
     else:
-        assert state.l_target == before and b.loop.rejected_cmd_height == rejected + 1
+        assert state.l_target == before and b.loop.balancing.rejected_cmd_height == rejected + 1
     assert lo <= state.l_target <= hi and lo <= b.loop.legs.shaper.target <= hi
     # The reference starts at the height measured at arming: height_min within the arming
     # tolerance (RAISED_TOLERANCE, 5 mm); the legs' commands are in the range from the start.

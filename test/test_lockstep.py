@@ -36,7 +36,7 @@ def window(ls: Lockstep, name: str, seconds: float):
 
 def test_stands_up_from_the_folded_rest_on_the_imu_and_the_motor_replies_alone():
     ls = Lockstep(imu_offset=D)
-    assert ls.loop.from_can and ls.loop.legs is not None
+    assert ls.loop.sensing.from_can and ls.loop.legs is not None
     rest = ls.sim.ground_truth()
     assert rest['l'] < P.height_min and rest['theta'] > 0.1   # folded, on the tail
     ls.run(0.5)
@@ -64,11 +64,11 @@ def test_cmd_height_is_tracked_clamped_and_refused_when_not_finite():
     ls.run(4.0)
     assert all(abs(v - 0.60) < 0.01 for v in window(ls, 'l_true', 1.0))
     assert max(abs(v) for v in ls.series('theta_true', since=ls.t - 4.0)) < math.radians(5.0)
-    refused = ls.loop.rejected_cmd_height
+    refused = ls.loop.balancing.rejected_cmd_height
     for bad in (math.nan, math.inf, -math.inf):
         ls.command_height(bad)
         ls.run(0.05)
-    assert ls.loop.rejected_cmd_height == refused + 3
+    assert ls.loop.balancing.rejected_cmd_height == refused + 3
     assert ls.log[-1]['l_ref'] == pytest.approx(0.60)
     # Out of range: clamped to [height_min, height_max], reached within the legs' rate limits.
     ls.command_height(5.0)
@@ -131,7 +131,8 @@ def test_disarm_sits_the_robot_down_onto_its_tail():
     assert contact['theta_true'] > TAIL - math.radians(4.0)   # the tail, not a fall
     travel = max(abs(row['x_true'] - x0) for row in sitting)
     assert travel <= 1.0, travel
-    assert ls.loop.last_sit_down is not None and ls.loop.last_sit_down.contact_rate <= 0.5
+    sat = ls.loop.legs_task.last_sit_down
+    assert sat is not None and sat.contact_rate <= 0.5
     assert int(Mode.FAULT) not in [row['mode'] for row in sitting]
     # Then it stays where it is, at rest on the tail with the legs folded, no torque.
     ls.run(2.0)
@@ -140,7 +141,7 @@ def test_disarm_sits_the_robot_down_onto_its_tail():
     # Braked below the sit-down's stop_speed before the motors rest; the free wheels may
     # roll on slowly (this floor has no rolling resistance), never faster.
     speeds = [abs(v) for v in window(ls, 'x_dot_true', 1.0)]
-    assert max(speeds) < ls.loop.sit_down_config.stop_speed and speeds[-1] <= speeds[0]
+    assert max(speeds) < ls.loop.legs_task.sit_down_config.stop_speed and speeds[-1] <= speeds[0]
     assert all(row['tau_left'] == 0.0 and row['tau_right'] == 0.0 for row in ls.log[-500:])
 
 

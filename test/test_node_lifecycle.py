@@ -36,7 +36,7 @@ from wheelleg_balance.core.schema import with_changes
 from wheelleg_balance.core.sensors import ImuSample
 from wheelleg_balance.nodes import control_link as L
 from wheelleg_balance.nodes import watchdog as wd
-from wheelleg_balance.nodes.control_process import ControlRunner
+from wheelleg_balance.nodes.control_process import make_runner
 from wheelleg_balance.validation.faults import scenarios
 from wheelleg_balance.validation.faults.bench import quaternion_pitch
 from wheelleg_balance.validation.faults.doubles import FakeMotors, MOTOR_IDS, TORQUE_LSB
@@ -116,9 +116,9 @@ def test_a_dead_imu_in_lockstep_faults_imu_stale_with_zero_torque_after_the_wall
     heartbeat.set_state(wd.WATCHING)   # as the watchdog process does once it watches
     ros_end, loop_end = L.socket_pair()
     intake_end, loop_sensor_end = L.socket_pair()
-    runner = ControlRunner(cfg, VirtualBus(channel=channel), L.Link(loop_end),
-                           L.Link(loop_sensor_end), realtime_options=False,
-                           heartbeat=heartbeat)
+    runner = make_runner(cfg, VirtualBus(channel=channel), L.Link(loop_end),
+                         L.Link(loop_sensor_end), realtime_options=False,
+                         heartbeat=heartbeat)
     thread = threading.Thread(target=runner.run, daemon=True)
     thread.start()
     ros, sensors = L.Link(ros_end), L.Link(intake_end)
@@ -274,8 +274,8 @@ def test_the_lockstep_guard_keeps_the_clock_moving_only_while_commanding():
                                          'lockstep_wall_timeout': 0.1})
     ros_end, loop_end = L.socket_pair()
     intake_end, loop_sensor_end = L.socket_pair()
-    runner = ControlRunner(cfg, VirtualBus(channel='wlb-%s' % uuid.uuid4().hex),
-                           L.Link(loop_end), L.Link(loop_sensor_end), realtime_options=False)
+    runner = make_runner(cfg, VirtualBus(channel='wlb-%s' % uuid.uuid4().hex),
+                         L.Link(loop_end), L.Link(loop_sensor_end), realtime_options=False)
     thread = threading.Thread(target=runner.run, daemon=True)
     thread.start()
     sensors = L.Link(intake_end)

@@ -110,3 +110,54 @@ def wheel_velocity(motor_velocity: float, direction: int) -> float:
     direction as for motor_torque; the same mapping turns a motor position into a wheel angle.
     """
     return direction * motor_velocity
+
+
+#: Ticks between the exit frames that keep resting motors answering (DISARMED): 20 ms.
+POLL_TICKS = 10
+
+
+class Actuation:
+    """
+    The last part of the tick: its frames to the motors (no CAN here: core/motors.py's codecs).
+
+    wheels: the wheel motors (a core/motors.py MotorSet); legs: the leg task
+    (core/leg_task.py), whose hip frames go beside the wheels'; poll_wheels: the wheels' replies
+    are read while they rest (``wheel_state_source: can``). Frames go into a TickResult's
+    ``frames`` (the wheels' bus) and ``leg_frames`` (the hips').
+    """
+
+    def __init__(self, wheels, legs, poll_wheels: bool):
+        self.wheels, self.legs, self.poll_wheels = wheels, legs, poll_wheels
+        self._names = [m.name for m in wheels.motors]
+
+    def torques(self, r, tau_left: float, tau_right: float) -> None:
+        """Command the wheel torques [N m] (forward positive; the directions applied here)."""
+        left, right = self._names
+        r.frames += self.wheels.torque_frames({left: tau_left, right: tau_right})
+
+    def zero(self, r) -> None:
+        """Zero torque to the wheels, staying in motor mode (FAULT, HOMING)."""
+        r.frames += self.wheels.zero_torque_frames()
+
+    def enable(self, r) -> None:
+        """Enter motor mode, every motor."""
+        r.frames += self.wheels.enable_frames()
+        r.leg_frames += self.legs.enable_frames()
+
+    def stop(self, r) -> None:
+        """Zero torque and exit motor mode, every motor."""
+        r.frames += self.wheels.stop_frames()
+        r.leg_frames += self.legs.stop_frames()
+
+    def poll(self, r, tick: int) -> None:
+        """
+        DISARMED: every POLL_TICKS ticks, exit frames to resting motors that are read.
+
+        Resting motors answer every frame: exit frames keep them resting and their replies
+        (liveness, wheel and hip readings) coming.
+        """
+        if tick % POLL_TICKS or not (self.poll_wheels or self.legs.driven) or r.frames:
+            return
+        if self.poll_wheels:
+            r.frames += self.wheels.protocol.disable_frames(self.wheels.ids)
+        r.leg_frames += self.legs.poll_frames()

@@ -25,8 +25,8 @@ both as the total torque (u = tau_total / r_w, gain x 10) and as the torque of e
 from typing import Optional
 
 import numpy as np
-from scipy.linalg import solve_continuous_are
 
+from . import table_cache
 from .height_grid import bracket
 from .model import linearize
 from .params import RobotParams, TABLE_I_K_X
@@ -48,6 +48,8 @@ def lqr_gain(l: float, p: RobotParams, Q=None, R=None) -> np.ndarray:
 
     Q: 4x4 state weight (default DEFAULT_Q); R: scalar input weight [1/N^2] (default DEFAULT_R).
     """
+    # Imported here: a start that finds its tables (core/table_cache.py) needs no scipy.
+    from scipy.linalg import solve_continuous_are
     A, B = linearize(l, p)
     Q = DEFAULT_Q if Q is None else np.asarray(Q, dtype=float)
     R = DEFAULT_R if R is None else float(np.asarray(R, dtype=float).reshape(-1)[0])
@@ -136,7 +138,12 @@ class GainSchedule:
         self.Q = DEFAULT_Q if Q is None else np.asarray(Q, dtype=float)
         self.R = DEFAULT_R if R is None else R
         self.heights = heights
-        self.gains = np.array([lqr_gain(h, p, self.Q, self.R) for h in heights])
+        # Solved once for these inputs (core/table_cache.py).
+        inputs = {'model': table_cache.floats(p), 'Q': table_cache.floats(self.Q),
+                  'R': float(np.asarray(self.R, dtype=float).reshape(-1)[0]),
+                  'heights': table_cache.floats(heights)}
+        self.gains = table_cache.table('lqr_gains', inputs,
+                                       lambda: [lqr_gain(h, p, self.Q, self.R) for h in heights])
         self._h = [float(h) for h in heights]
         self._k = [tuple(float(v) for v in k) for k in self.gains]
 

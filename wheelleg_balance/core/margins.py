@@ -41,7 +41,7 @@ import numpy as np
 from scipy.optimize import brentq
 from scipy.signal import cont2discrete, StateSpace
 
-from .balance_loop import core_config
+from .balancing import core_config
 from .config import BalanceConfig
 from .controller_base import ControlInput
 from .model import linearize

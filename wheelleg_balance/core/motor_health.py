@@ -14,7 +14,9 @@ Motor health from the replies: temperature, error codes, a reboot (no rclpy, no 
   field) is a fault: such a motor is never silently "alive" again.
 """
 import math
-from typing import Optional
+from typing import List, Optional, Tuple
+
+from .safety import MOTOR_ERROR, MOTOR_REBOOTED
 
 #: Share of the torque limit left at temp_max.
 DERATE_FLOOR = 0.5
@@ -72,3 +74,34 @@ def position_jump(p_prev: float, v_prev: float, t_prev: float, p: float, v: floa
         d = (d + 0.5 * span) % span - 0.5 * span
     return max(0.0, abs(d) - 0.5 * MAX_ACCELERATION * gap * gap
                - 0.5 * abs(v_prev + v) * RECEIPT_JITTER)
+
+
+def judge_motors(sets, wheels, name) -> Tuple[float, Optional[str], List[Tuple[str, str]]]:
+    """
+    Judge the newest replies of every motor set; return (scale, hot, problems).
+
+    sets: (MotorSet, its model's figures: temp_derate, temp_max) pairs; wheels: the wheels'
+    MotorSet (their temperature derates the torque limit); name: a motor's name in a text.
+    scale: the wheels' torque limit factor [-]; hot: why a motor is at temp_max (None: none);
+    problems: (fault code, text) of each error code and reboot, and ('', text) for heat. A
+    motor's error code is taken (reset) as it is judged.
+    """
+    problems, hot, scale = [], None, 1.0
+    for motors, model in sets:
+        for m in motors.motors:
+            fb = m.feedback
+            if fb is None:
+                continue
+            code, m.error = m.error, 0
+            if code:
+                problems.append((MOTOR_ERROR, '%s error %d: %s'
+                                 % (name(m), code, error_reason(code))))
+            if m.rebooted is not None:
+                problems.append((MOTOR_REBOOTED, '%s %s' % (name(m), m.rebooted)))
+            t = fb.temperature
+            if motors is wheels:
+                scale = min(scale, derate(t, model.temp_derate, model.temp_max))
+            if t is not None and t >= model.temp_max:
+                hot = '%s at %.0f deg C, temp_max %.0f deg C' % (name(m), t, model.temp_max)
+                problems.append(('', hot))
+    return scale, hot, problems

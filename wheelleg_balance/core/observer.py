@@ -28,8 +28,8 @@ import math
 from typing import Optional
 
 import numpy as np
-from scipy.signal import cont2discrete, place_poles
 
+from . import table_cache
 from .height_grid import bracket
 from .model import disturbance_input, linearize
 from .params import CONTROL_PERIOD, RobotParams
@@ -55,6 +55,8 @@ def augmented_model(l: float, p: RobotParams) -> tuple:
 
 def discretize(l: float, p: RobotParams, dt: float = CONTROL_PERIOD) -> tuple:
     """Return (Ad 5x5, Bd (5,)): the zero-order-hold discretization of (8) at height l."""
+    # Imported here: a start that finds its tables (core/table_cache.py) needs no scipy.
+    from scipy.signal import cont2discrete
     A_hat, B_hat = augmented_model(l, p)
     Ad, Bd, _, _, _ = cont2discrete(
         (A_hat, B_hat.reshape(5, 1), C_HAT, np.zeros((2, 1))), dt, method='zoh')
@@ -68,9 +70,25 @@ def observer_gain(l: float, p: RobotParams, dt: float = CONTROL_PERIOD,
 
     The eigenvalues of (I - L C_hat) Ad are exp(s dt) for the continuous poles s [1/s].
     """
+    from scipy.signal import place_poles
     Ad, _ = discretize(l, p, dt)
     z = np.exp(np.asarray(poles, dtype=float) * dt)
     return place_poles(Ad.T, (C_HAT @ Ad).T, z).gain_matrix.T
+
+
+def observer_rows(p: RobotParams, dt: float, poles, heights) -> np.ndarray:
+    """
+    Return the observer's rows per height: [F | G | L | Ad | Bd] (n x 5 x 14).
+
+    F = (I - L C_hat) Ad, G = (I - L C_hat) Bd, L = ``observer_gain``; Ad, Bd = ``discretize``.
+    """
+    rows = []
+    for h in heights:
+        Ad, Bd = discretize(h, p, dt)
+        L = observer_gain(h, p, dt, poles)
+        ILC = np.eye(5) - L @ C_HAT
+        rows.append(np.column_stack([ILC @ Ad, ILC @ Bd, L, Ad, Bd]))
+    return np.array(rows)
 
 
 class DisturbanceObserver:
@@ -97,16 +115,15 @@ class DisturbanceObserver:
         self.dt = dt
         self.poles = tuple(poles)
         self.heights = np.asarray(heights, dtype=float)
-        self.gains = []  # L (5x2) per grid height
         self._h = [float(h) for h in self.heights]
-        # Per grid height, 5 rows of [F_i0..F_i4, G_i, L_i0, L_i1, Ad_i0..Ad_i4, Bd_i].
-        self._rows = []
-        for h in self._h:
-            Ad, Bd = discretize(h, p, dt)
-            L = observer_gain(h, p, dt, poles)
-            ILC = np.eye(5) - L @ C_HAT
-            self.gains.append(L)
-            self._rows.append(np.column_stack([ILC @ Ad, ILC @ Bd, L, Ad, Bd]))
+        # Per grid height, 5 rows of [F_i0..F_i4, G_i, L_i0, L_i1, Ad_i0..Ad_i4, Bd_i]: solved
+        # once for these inputs (core/table_cache.py).
+        inputs = {'model': table_cache.floats(p), 'dt': float(dt),
+                  'poles': table_cache.floats(self.poles), 'heights': self._h}
+        rows = table_cache.table('observer_rows', inputs,
+                                 lambda: observer_rows(p, dt, self.poles, self._h))
+        self._rows = list(rows)
+        self.gains = [r[:, 6:8] for r in self._rows]  # L (5x2) per grid height
         self._l = None
         self._cur = None   # rows (F, G, L) at self._l
         self._pred = None  # rows (Ad, Bd) at self._l

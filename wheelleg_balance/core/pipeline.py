@@ -242,6 +242,15 @@ class BalanceCore:
         for controller in self.controllers.values():
             controller.reset(s)
 
+    def coast(self, w_left: float, w_right: float, theta_dot: float, dt: float) -> None:
+        """
+        Advance the odometry while not balancing (the robot may be pushed or rolled).
+
+        The wheel speeds relative to the leg and the pitch rate [rad/s], over dt [s]: the
+        odometry has this one owner, ``step`` moves it while balancing.
+        """
+        self.odometry.update(w_left, w_right, theta_dot, dt)
+
     def _height(self, l: float) -> float:
         """Clamp l into the leg's range; a non-finite l (legs out of reach) keeps the last."""
         if math.isfinite(l):

@@ -163,7 +163,7 @@ def _libc():
     """Return the C library with errno capture, or None."""
     # The interpreter is linked against libc: its symbols need no library search (and
     # ctypes.util.find_library would run ldconfig in a subprocess).
-    for name in (None, ctypes.util.find_library('c')):
+    for name in _libc_names():
         try:
             lib = ctypes.CDLL(name, use_errno=True)
         except OSError:
@@ -171,6 +171,12 @@ def _libc():
         if hasattr(lib, 'mlockall'):
             return lib
     return None
+
+
+def _libc_names():
+    """Yield None (the interpreter's own symbols), then, only if asked, the searched libc."""
+    yield None
+    yield ctypes.util.find_library('c')
 
 
 def _cpu_list(cpus) -> str:

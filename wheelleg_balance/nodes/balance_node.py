@@ -26,7 +26,6 @@ import gc
 import itertools
 import math
 import signal
-import subprocess
 import sys
 import threading
 import time
@@ -34,33 +33,24 @@ from typing import Callable, Dict, Optional
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TwistStamped
-from nav_msgs.msg import Odometry
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 from rclpy.signals import uninstall_signal_handlers
-from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension
+from std_msgs.msg import Float64
 from std_srvs.srv import SetBool, Trigger
 
-from . import control_link as L, input_guard, lean, sensor_intake, watchdog
-from .control_process import ControlRunner
+from . import control_link as L, input_guard, lean
 from .diagnostics import diagnostic_array
+from .loop_processes import LoopProcesses, START_TIMEOUT  # noqa: F401 (START_TIMEOUT)
 from .params import load, ParameterGuard
-from .transforms import TfPublisher
-from ..core.balance_loop import joint_names
+from .state_publisher import StatePublisher
 from ..core.config import BalanceConfig
 from ..core.safety import Mode
-from ..core.schema import to_flat
-from ..core.tick_io import CmdHeight, CmdVel, FLAGS, MODE, N_STATE, ODOM, PUBLISH_ODOM, \
-    PUBLISH_STATE, STATE_FIELDS
-from ..processes import Child, end_process, StartError
+from ..core.tick_io import CmdHeight, CmdVel, MODE
+from ..processes import StartError
 
-#: How long the node waits for the control loop to start [s] (imports numpy and scipy).
-START_TIMEOUT = 30.0
-#: The control process's module (nodes/control_process.py).
-CONTROL_MODULE = 'wheelleg_balance.nodes.control_process'
 #: How long ~/arm waits for the loop's answer [s].
 ARM_TIMEOUT = 1.0
 #: A status older than this [s] means the control loop is not alive (it sends ten a second).
@@ -93,7 +83,9 @@ class BalanceNode(Node):
         self._closing = threading.Event()
         self._ready = threading.Event()
         self._control_error = ''
-        self._make_publishers(cfg)
+        self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10,
+                                               event_callbacks=lean.publisher_events())
+        self._publisher = StatePublisher(self, cfg)
         # The GIL is handed over every 5 ms by default: far too late for a control loop in a
         # thread of this process (tests) when the executor is busy in Python.
         sys.setswitchinterval(min(sys.getswitchinterval(), 0.0002))
@@ -108,58 +100,18 @@ class BalanceNode(Node):
 
     # ------------------------------------------------------------------------------ set-up
 
-    def _make_publishers(self, cfg: BalanceConfig) -> None:
-        """Create the publishers and their reused messages."""
-        self._state_msg = Float64MultiArray()
-        self._state_msg.layout.dim = [MultiArrayDimension(
-            label=','.join(STATE_FIELDS), size=N_STATE, stride=N_STATE)]
-        self._state_pub = self._publisher(Float64MultiArray, '~/state')
-        self._odom_msg = self._make_odom()
-        self._odom_pub = self._publisher(Odometry, 'odom')
-        self._diag_pub = self._publisher(DiagnosticArray, '/diagnostics')
-        self._joint_msg = JointState(name=joint_names(cfg))
-        self._joint_pub = self._publisher(JointState, 'joint_states')
-        self._tf = TfPublisher(self, cfg)
-
     def _start_children(self, bus) -> None:
-        """Start the control loop and the sensor intake; wait until both run."""
-        ros_end, loop_end = L.socket_pair()
-        intake_end, loop_sensor_end = L.socket_pair()
-        self.link = L.Link(ros_end)
-        self._control: Optional[Child] = None
-        self._intake_child: Optional[Child] = None
-        self._child: Optional[subprocess.Popen] = None
-        self._intake: Optional[subprocess.Popen] = None
-        self.watchdog: Optional[watchdog.WatchdogProcess] = None
-        self._runner: Optional[ControlRunner] = None
-        self._runner_thread: Optional[threading.Thread] = None
+        """Start the control loop, the sensor intake, the watchdog; wait until they run."""
         self._reader = threading.Thread(target=self._read_link, name='balance_link',
                                         daemon=True)
+        self._procs = LoopProcesses()
+        self.link = self._procs.link
         _on_shutdown_signal(self.stop_loop)
         try:
-            self._start_control(bus, loop_end, loop_sensor_end)
-            self._start_intake(intake_end)
+            self._procs.start(self, self.config, bus)
             self._reader.start()
-            if not self._ready.wait(START_TIMEOUT) or self.link.closed:
-                raise StartError(self._child_failure(self._control) or self._control_error
-                                 or 'control loop did not start')
-            # The loop reports the intake's subscriptions (a process of its own) in its status.
-            end = time.monotonic() + START_TIMEOUT
-            while not (self._status or {}).get('intake_ready') and time.monotonic() < end \
-                    and not self.link.closed and self._intake.poll() is None:
-                time.sleep(0.02)
-            if not (self._status or {}).get('intake_ready'):
-                if self.link.closed:   # the control process ended first
-                    raise StartError(self._child_failure(self._control) or self._control_error
-                                     or 'control loop ended')
-                raise StartError(self._child_failure(self._intake_child)
-                                 or 'sensor intake did not start (exit code %s)'
-                                 % self._intake.poll())
-            if self.watchdog is not None:   # none with an in-process bus
-                self.watchdog.wait(end)
-            for child in (self._control, self._intake_child):
-                if child is not None:
-                    child.started()   # a later failure goes to stderr, traceback and all
+            self._procs.wait_started(self._ready, lambda: self._status,
+                                     lambda: self._control_error)
         except BaseException:
             # Whatever stopped the start (an error, a signal), the motors end at zero torque.
             self.shutdown()
@@ -180,54 +132,6 @@ class BalanceNode(Node):
             self, cfg, lambda found: self.link.send_object(L.CONFLICTS, found))
         self.create_timer(input_guard.CHECK_PERIOD, self.input_guard.check)
         self.add_on_set_parameters_callback(self._guard)
-
-    def _publisher(self, msg_type, topic: str):
-        return self.create_publisher(msg_type, topic, 10, event_callbacks=lean.publisher_events())
-
-    def _make_odom(self) -> Odometry:
-        pub = self.config.publish
-        msg = Odometry()
-        msg.header.frame_id = pub.odom_frame_id
-        msg.child_frame_id = pub.footprint_frame_id   # the odometry's pose is the footprint's
-        for k, c in enumerate(pub.pose_covariance_diagonal):
-            msg.pose.covariance[7 * k] = c
-        for k, c in enumerate(pub.twist_covariance_diagonal):
-            msg.twist.covariance[7 * k] = c
-        return msg
-
-    def _start_control(self, bus, loop_end, sensor_end) -> None:
-        if bus is not None:
-            self._runner = ControlRunner(self.config, bus, L.Link(loop_end), L.Link(sensor_end))
-            self._runner_thread = threading.Thread(target=self._runner.run,
-                                                   name='balance_control', daemon=True)
-            self._runner_thread.start()
-            return
-        self.watchdog = watchdog.WatchdogProcess(watchdog.stall_limit(self.config))
-        fds = (L.inheritable(loop_end), L.inheritable(sensor_end), self.watchdog.heartbeat.fd)
-        # Each child on this process's sys.path, never the working directory's (processes.py).
-        self._control = Child('the control process', CONTROL_MODULE, [
-            '--fd', str(fds[0]), '--sensor-fd', str(fds[1]), '--heartbeat-fd', str(fds[2])],
-            pass_fds=fds)
-        self._child = self._control.process
-        # The child has its copies; ours would hide the child's end-of-file.
-        loop_end.close()
-        sensor_end.close()
-        self.link.send_object(L.PARAMS, to_flat(self.config))
-        self.watchdog.start(self._child.pid, to_flat(self.config))
-
-    def _start_intake(self, intake_end) -> None:
-        fd = L.inheritable(intake_end)
-        # joint_states_in, never the joint_states this node publishes (docs/interface.md).
-        self._intake_child = Child('the sensor intake', sensor_intake.MODULE,
-                                   sensor_intake.arguments(
-                                       fd, self.get_name(), self.get_namespace(),
-                                       self.resolve_topic_name('imu'),
-                                       self.resolve_topic_name('joint_states_in'),
-                                       to_flat(self.config),
-                                       sensor_intake.enclave_argument(sys.argv)),
-                                   pass_fds=(fd,))
-        self._intake = self._intake_child.process
-        intake_end.close()
 
     # --------------------------------------------------------------- from the control loop
 
@@ -250,12 +154,6 @@ class BalanceNode(Node):
                                         'frames if it could send them')
         self._ready.set()
 
-    @staticmethod
-    def _child_failure(child: Optional[Child]) -> Optional[str]:
-        """Return a child's line (a failed start) or exit code, else None (still running)."""
-        # Its link closes as it ends: the line, written before, or its exit follows at once.
-        return None if child is None else child.failure(wait=2.0)
-
     def _commanding(self) -> bool:
         """Return True while the motors are commanded or an arm request is under way."""
         return self._loop_mode != int(Mode.DISARMED) and self._loop_mode != int(Mode.FAULT) \
@@ -267,10 +165,7 @@ class BalanceNode(Node):
             self._loop_mode = int(values[MODE])
             if not self.context.ok() or self._closing.is_set():
                 return
-            stamp = self.get_clock().now().to_msg()
-            self._publish_state(values, stamp)
-            if joints:
-                self._publish_joints(joints, stamp)
+            self._publisher.publish(values, joints, self.get_clock().now().to_msg())
         elif tag == L.STATUS:
             self._status = payload
             self._loop_mode = int(payload['mode_index'])
@@ -298,30 +193,6 @@ class BalanceNode(Node):
             log.error(text)
             if not self._ready.is_set():
                 self._control_error = text
-
-    def _publish_state(self, values, stamp) -> None:
-        # values: array('d') (nodes/control_link.py), which float64[] fields take unchecked.
-        flags = int(values[FLAGS])
-        if flags & PUBLISH_STATE:
-            self._state_msg.data = values[:N_STATE]
-            self._state_pub.publish(self._state_msg)
-        x, y, yaw, x_dot, yaw_rate = values[ODOM]
-        if flags & PUBLISH_STATE:
-            self._tf.publish(stamp, values, (x, y, yaw))
-        if flags & PUBLISH_ODOM:
-            msg = self._odom_msg
-            msg.header.stamp = stamp
-            msg.pose.pose.position.x, msg.pose.pose.position.y = x, y
-            msg.pose.pose.orientation.z = math.sin(0.5 * yaw)
-            msg.pose.pose.orientation.w = math.cos(0.5 * yaw)
-            msg.twist.twist.linear.x, msg.twist.twist.angular.z = x_dot, yaw_rate
-            self._odom_pub.publish(msg)
-
-    def _publish_joints(self, values, stamp) -> None:
-        msg, n = self._joint_msg, len(self._joint_msg.name)
-        msg.header.stamp = stamp
-        msg.position, msg.velocity, msg.effort = values[0:n], values[n:2 * n], values[2 * n:]
-        self._joint_pub.publish(msg)
 
     # ------------------------------------------------------------------- to the control loop
 
@@ -375,14 +246,13 @@ class BalanceNode(Node):
     @property
     def control_task_id(self) -> Optional[int]:
         """Return the Linux task the control loop runs in: its process's pid or thread id."""
-        if self._child is not None:
-            return self._child.pid
-        return None if self._runner_thread is None else self._runner_thread.native_id
+        return self._procs.control_task_id
 
     @property
     def control_ticks(self) -> Optional[int]:
         """Return the ticks the control loop has run in this process (None: in its own)."""
-        return None if self._runner is None else self._runner.ticks
+        runner = self._procs.runner
+        return None if runner is None else runner.ticks
 
     @property
     def status(self) -> Optional[dict]:
@@ -393,7 +263,8 @@ class BalanceNode(Node):
         """Build the DiagnosticArray of the newest status of the control loop."""
         return diagnostic_array(self._status, self._hardware_id, now, ALIVE_LIMIT,
                                 self.get_clock().now().to_msg(),
-                                None if self.watchdog is None else self.watchdog.state())
+                                None if self._procs.watchdog is None
+                                else self._procs.watchdog.state())
 
     # ------------------------------------------------------------------------------ shutdown
 
@@ -402,24 +273,12 @@ class BalanceNode(Node):
         if self._closing.is_set():
             return
         self._closing.set()
+        procs = self._procs
         self.stop_loop()   # first: the intake takes a while to end
-        if self._intake is not None:
-            end_process(self._intake)
-        if self._runner is not None:
-            self._runner.stop()
-            if self._runner_thread is not None:
-                self._runner_thread.join(timeout=2.0)
-            self._runner.shutdown()
-        if self._child is not None:
-            _end_child(self._child, self.link)
+        procs.end_children()
         if self._reader.is_alive():
             self._reader.join(timeout=1.0)
-        self.link.close()
-        if self.watchdog is not None:
-            self.watchdog.close()
-        for child in (self._control, self._intake_child):
-            if child is not None:
-                child.started()   # closes its report pipe
+        procs.close()
 
     def stop_loop(self) -> None:
         """Tell the control loop to stop now: zero torque, exit frames (from a signal handler)."""
@@ -429,21 +288,6 @@ class BalanceNode(Node):
         """Shut down (stop the loop, zero torque, close the bus), then destroy the node."""
         self.shutdown()
         return super().destroy_node()
-
-
-def _end_child(child: subprocess.Popen, link: L.Link) -> None:
-    """Let the control process end with its stop frames; kill it only if it hangs."""
-    try:
-        child.wait(timeout=1.0)
-        return
-    except subprocess.TimeoutExpired:
-        pass
-    link.close()  # end-of-file: the loop stops even if the STOP message was dropped
-    try:
-        child.wait(timeout=2.0)
-    except subprocess.TimeoutExpired:
-        child.kill()
-        child.wait()
 
 
 #: The running node's first step of a shutdown signal: tell the control loop to stop (zero

@@ -21,23 +21,12 @@ whether it commands the motors) into memory it shares with the watchdog process
 (nodes/watchdog.py), which stops the motors if the loop stalls or dies; no arm before the
 watchdog watches.
 
-With ``clock_source: imu_stamp`` (a simulator in lockstep: sim_node's ``lockstep``) the loop is
-paced by the simulated sensor instead of the wall clock: one tick per IMU sample, at the
-sample's header stamp, and every receipt time of that tick (samples, CAN replies, commands) is
-that stamp, so every timeout runs on simulated time. sim_node steps its physics once it has the
-frames of the tick, so the closed loop is the same on an idle machine and on a loaded one,
-only slower (docs/simulation.md). Never on a robot: a silent IMU would stop the clock (the
-configuration allows it only on the test buses, core/config.py). So there only a tick writes
-the heartbeat, and while the motors are commanded a wall-clock guard stands in for the stopped
-clock: no new sample for ``lockstep_wall_timeout`` (1 s) of wall time runs one more tick, a
-period after the last, told that the IMU is silent (``TickInputs.imu_silent``): FAULT
-imu_stale, zero torque. Should the loop itself hang, the watchdog fires on the heartbeat that
-no tick renewed (its limit there is that timeout plus ``watchdog_timeout``).
+With ``clock_source: imu_stamp`` (a simulator in lockstep) the runner is the lockstep runner
+of nodes/lockstep_runner.py instead (``make_runner``), a runner of its own.
 """
 import argparse
 from array import array
 import gc
-import math
 import signal
 import sys
 import time
@@ -47,14 +36,14 @@ from . import control_link as L
 from .can_io import CanIo, open_bus_or_fail
 from .sensor_intake import die_with_parent
 from .watchdog import Heartbeat, WATCHING
-from ..core import realtime
-from ..core.balance_loop import BalanceLoop, TickInputs
+from ..core import realtime, table_cache
+from ..core.balance_loop import BalanceLoop
 from ..core.can_budget import BusLoad, max_catch_up
 from ..core.config import BalanceConfig
 from ..core.deadline import DeadlineLoop, TIMING_WINDOW, window_stats
 from ..core.safety import COMMANDING, Mode
 from ..core.schema import from_flat
-from ..core.tick_io import PUBLISH_ODOM, PUBLISH_STATE, state_frame
+from ..core.tick_io import PUBLISH_ODOM, PUBLISH_STATE, state_frame, TickInputs
 from ..processes import run_child, StartError
 
 #: Missed deadlines served late, back to back, before a stall is skipped. Catching up keeps the
@@ -89,14 +78,11 @@ class ControlRunner:
         """
         self.cfg = cfg
         self.loop = BalanceLoop(cfg)
-        self.on_stamps = cfg.loop.clock_source == 'imu_stamp'
-        #: The time of the newest tick [s]: CLOCK_MONOTONIC, or the IMU's stamp (on_stamps).
+        #: The time of the newest tick [s]: CLOCK_MONOTONIC (the lockstep runner: a stamp).
         self.now = 0.0
         #: Ticks run so far (the timer's count is the wall-clock loop's only).
         self.ticks = 0
-        #: on_stamps: samples whose stamp did not advance the clock (no tick ran on them).
-        self.stamps_not_advancing = 0
-        clock = (lambda: self.now) if self.on_stamps else time.monotonic
+        clock = self._receipt_clock()
         self.can = CanIo(bus, cfg.can.send_timeout, clock, cfg.can.raw_frames)
         self.leg_can = CanIo(leg_bus, cfg.can.send_timeout, clock, cfg.can.raw_frames) \
             if leg_bus is not None else None
@@ -124,6 +110,10 @@ class ControlRunner:
         # No arming before the watchdog watches (it starts after this process).
         self.inputs.guarded = heartbeat is None
 
+    def _receipt_clock(self):
+        """Return the clock that stamps the frames' receipt (CLOCK_MONOTONIC)."""
+        return time.monotonic
+
     @staticmethod
     def catch_up_limit(cfg: BalanceConfig, legs_own_bus: bool) -> int:
         """Return the ticks a catch-up may serve: MAX_CATCH_UP, fewer with a short TX queue."""
@@ -145,12 +135,13 @@ class ControlRunner:
             gc.freeze()  # a full collection of the start-up objects took 30 ms (15 ticks)
             self.link.send_object(L.READY, 'control loop %.1f ms, %s' % (
                 1e3 * self.timer.period, self.realtime or 'no real-time options'))
-            if self.on_stamps:
-                self._run_on_stamps()
-            else:
-                self.timer.run(self._tick)
+            self._loop()
         finally:
             self.shutdown()
+
+    def _loop(self) -> None:
+        """Tick every control_period until stopped (core/deadline.py)."""
+        self.timer.run(self._tick)
 
     def stop(self) -> None:
         """End the loop after the tick in progress (any thread, a signal handler)."""
@@ -170,22 +161,11 @@ class ControlRunner:
             self.leg_can.close()
 
     def _send(self, frames, leg_frames) -> Optional[str]:
-        """
-        Send the wheels' frames, then the hips' (on their own bus if they have one).
-
-        On IMU stamps (a simulator in lockstep) the hips' go first: the wheels, commanded every
-        tick, then close the tick for sim_node (sim/robot_motors.py ``commanded``), whichever
-        hips the tick commanded.
-        """
+        """Send the wheels' frames, then the hips' (on their own bus if they have one)."""
         if not leg_frames:
             return self.can.send(frames)
-        leg_can = self.leg_can or self.can
-        if self.on_stamps:
-            leg_error = leg_can.send(leg_frames)
-            error = self.can.send(frames)
-        else:
-            error = self.can.send(frames)
-            leg_error = leg_can.send(leg_frames)
+        error = self.can.send(frames)
+        leg_error = (self.leg_can or self.can).send(leg_frames)
         return error or leg_error
 
     def _apply_realtime(self) -> None:
@@ -209,11 +189,7 @@ class ControlRunner:
             self.inputs.guarded = hb.state()[0] == WATCHING
 
     def _drain_link(self) -> None:
-        if not self.on_stamps:
-            self._beat()
-        elif self.heartbeat is not None:
-            # On stamps only a tick beats: no sample, no tick, a heartbeat that goes stale.
-            self.inputs.guarded = self.heartbeat.state()[0] == WATCHING
+        self._beat()
         # The intake's samples first, then the ROS side's messages (it may carry samples too).
         for link in (self.sensor_link, self.link):
             if link is not None:
@@ -247,60 +223,8 @@ class ControlRunner:
             self.timer.stop()
         elif tag == L.READY:
             self.intake_ready = True
+            self._status_due = self._first_status()   # balance_node's start waits for it
             self.link.send_object(L.EVENT, ('info', '%s ready' % payload))
-
-    def _run_on_stamps(self) -> None:
-        """Tick at the stamp of each newest IMU sample (clock_source imu_stamp)."""
-        link = self.sensor_link if self.sensor_link is not None else self.link
-        # The status goes out on the wall clock here (the ROS side judges the loop alive by
-        # its age), also before the first sample; _step adds one on a mode change.
-        self._status_due = math.inf
-        status_due = time.monotonic()
-        silent_limit = self.cfg.loop.lockstep_wall_timeout
-        last_tick = time.monotonic()
-        while not self.timer.stopped:
-            link.wait_readable(IDLE_WAKE)
-            self._drain_link()
-            if time.monotonic() >= status_due:
-                status_due = time.monotonic() + STATUS_PERIOD
-                self.link.send_object(L.STATUS, self.status(self.now))
-            inputs = self.inputs
-            now = self._newest_stamp()
-            silent = time.monotonic() - last_tick
-            if now is None and silent > silent_limit and self.loop.mode in COMMANDING:
-                # The clock stopped with torque in the motors: one tick, a period on, faults.
-                inputs.imu_silent = (
-                    'no IMU sample for %.2f s of wall time on IMU stamps (lockstep_wall_timeout '
-                    '%.2f s): the simulator or the IMU stopped' % (silent, silent_limit))
-                now = self.now + self.timer.period
-            if now is None:
-                continue
-            last_tick = time.monotonic()
-            # Every receipt time of this tick is its stamp: the timeouts run on sim time.
-            inputs.imu[:] = [s._replace(t=s.stamp_sec + 1e-9 * s.stamp_nanosec)
-                             for s in inputs.imu]
-            inputs.joints[:] = [s._replace(t=now) for s in inputs.joints]
-            if inputs.cmd_vel is not None:
-                inputs.cmd_vel = inputs.cmd_vel._replace(t=now)
-            if inputs.cmd_height is not None:
-                inputs.cmd_height = inputs.cmd_height._replace(t=now)
-            try:
-                self._step(now)
-            except Exception as exc:  # noqa: B902 -- as DeadlineLoop: the loop lives on
-                self._on_error(int(now * 1e9), exc)
-
-    def _newest_stamp(self) -> Optional[float]:
-        """Return the newest sample's stamp [s] if it advances the clock, else None."""
-        imu = self.inputs.imu
-        if not imu:
-            return None
-        newest = imu[-1]
-        now = newest.stamp_sec + 1e-9 * newest.stamp_nanosec
-        if now <= self.now:
-            self.stamps_not_advancing += 1   # a repeated or older stamp: time stands
-            imu.clear()
-            return None
-        return now
 
     def _tick(self, now_ns: int) -> None:
         self._drain_link()
@@ -329,9 +253,16 @@ class ControlRunner:
         mode = self.loop.mode
         if now >= self._status_due or mode is not self._last_mode:
             self._last_mode = mode
-            if not self.on_stamps:   # on stamps the wall clock times them (_run_on_stamps)
-                self._status_due = now + STATUS_PERIOD
+            self._status_due = self._next_status(now)
             self.link.send_object(L.STATUS, self.status(now))
+
+    def _first_status(self) -> float:
+        """Return when the status after the intake's readiness is due: at once."""
+        return 0.0
+
+    def _next_status(self, now: float) -> float:
+        """Return when the next status is due after one sent at ``now`` [s]."""
+        return now + STATUS_PERIOD
 
     def _answer_arm(self, reply) -> None:
         if reply is None or not self._arm_ids:
@@ -370,9 +301,6 @@ class ControlRunner:
         """Return the loop's status, its timing and the bus counters (for /diagnostics)."""
         out = self.loop.status(now)
         out['timing'] = self.timer.stats()
-        if self.on_stamps:   # no wall-clock deadlines: the ticks run on the IMU's stamps
-            out['timing']['ticks'] = self.ticks
-            out['timing']['stamps_not_advancing'] = self.stamps_not_advancing
         out['clock_source'] = self.cfg.loop.clock_source
         n = min(self.ticks, TIMING_WINDOW)
         out['timing'].update(window_stats('core', self._core_times[:n]))
@@ -388,6 +316,14 @@ class ControlRunner:
         out['intake_ready'] = self.intake_ready
         out['time'] = now
         return out
+
+
+def make_runner(cfg: BalanceConfig, *args, **kwargs) -> ControlRunner:
+    """Return the runner of ``cfg``'s clock_source: ControlRunner, or the lockstep runner."""
+    if cfg.loop.clock_source == 'imu_stamp':
+        from .lockstep_runner import LockstepRunner   # a simulator's clock: only then
+        return LockstepRunner(cfg, *args, **kwargs)
+    return ControlRunner(cfg, *args, **kwargs)
 
 
 def _stop_on_signals(runner: ControlRunner) -> None:
@@ -420,6 +356,9 @@ def main(argv=None) -> int:
         raise StartError('the control process', 'no configuration from balance_node within '
                          '30 s', 'balance_node starts it; it is not run by hand')
     cfg = from_flat(BalanceConfig, params)
+    # Tables of a configuration the package has none for (a robot's own model): solved at the
+    # first start, then read from the user's cache folder (core/table_cache.py).
+    table_cache.keep_in(table_cache.default_folder())
     # A bus that does not open is one line to balance_node (processes.run_child), which ends.
     bus = open_bus_or_fail(cfg.can.interface, cfg.can.channel, cfg.can.udp_port)
     leg_bus = None
@@ -431,7 +370,7 @@ def main(argv=None) -> int:
             bus.shutdown()
             raise
     heartbeat = None if args.heartbeat_fd is None else Heartbeat(args.heartbeat_fd)
-    runner = ControlRunner(cfg, bus, link, sensor_link, leg_bus=leg_bus, heartbeat=heartbeat)
+    runner = make_runner(cfg, bus, link, sensor_link, leg_bus=leg_bus, heartbeat=heartbeat)
     _stop_on_signals(runner)
     runner.run()
     link.close()

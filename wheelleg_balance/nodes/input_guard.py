@@ -13,9 +13,9 @@ command conflict drops that command until the intruder is gone.
 """
 from typing import Callable, Dict, Optional, Sequence, Tuple
 
-from ..core.balance_loop import joint_states_used
 from ..core.config import BalanceConfig
 from ..core.schema import to_flat
+from ..core.sensing import joint_states_used
 
 #: How often balance_node looks at the publishers [s].
 CHECK_PERIOD = 0.5

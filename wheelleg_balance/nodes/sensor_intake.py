@@ -37,9 +37,6 @@ from .control_link import Link, READY
 from .dds import apply_udp_only
 from .imu_cdr import imu_sample_from_cdr
 from ..core import realtime
-from ..core.balance_loop import joint_state_reader, joint_states_used
-from ..core.config import BalanceConfig
-from ..core.schema import from_flat
 from ..core.sensors import ImuSample, JointStateReader
 from ..processes import run_child
 
@@ -222,6 +219,10 @@ def main(argv=None) -> int:
     import rclpy
     from rclpy.context import Context
     from rclpy.signals import SignalHandlerOptions
+    # Here, not above: the control process and the watchdog import die_with_parent only.
+    from ..core.sensing import joint_state_reader, joint_states_used
+    from ..core.config import BalanceConfig
+    from ..core.schema import from_flat
 
     parser = argparse.ArgumentParser(description='balance_node sensor intake (started by '
                                      'balance_node, not by hand)')

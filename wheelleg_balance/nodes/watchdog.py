@@ -189,11 +189,38 @@ def stall_limit(cfg) -> float:
 MODULE = 'wheelleg_balance.nodes.watchdog'
 
 
+def plan(params: dict) -> dict:
+    """
+    Return what the watchdog needs of the flat configuration ``params``.
+
+    Its buses (channel, the frames that stop their motors: zero torque, exit motor mode), the
+    stall limit [s], the real-time priority. Worked out in balance_node's process, which has the
+    configuration's modules loaded anyway: the watchdog process then starts on python-can alone,
+    without numpy or the control core (docs/benchmarks.md, "Start-up").
+    """
+    from ..core.sensing import all_stop_frames
+    from ..core.config import BalanceConfig
+    from ..core.schema import from_flat
+    cfg = from_flat(BalanceConfig, params)
+    wheel_frames, leg_frames = all_stop_frames(cfg)
+    buses = [(cfg.can.channel, wheel_frames)]
+    if leg_frames:
+        if cfg.legs.channel and cfg.legs.channel != cfg.can.channel:
+            buses.append((cfg.legs.channel, leg_frames))
+        else:
+            buses[0] = (cfg.can.channel, wheel_frames + leg_frames)
+    return {'interface': cfg.can.interface, 'udp_port': cfg.can.udp_port,
+            'raw_frames': cfg.can.raw_frames, 'limit': stall_limit(cfg),
+            'realtime_priority': cfg.loop.realtime_priority,
+            'buses': [[channel, [[f.arbitration_id, f.data.hex(), f.is_extended_id]
+                                 for f in frames]] for channel, frames in buses]}
+
+
 def arguments(heartbeat_fd: int, pid: int, params: dict):
-    """Return the arguments of the watchdog of control process ``pid``."""
+    """Return the arguments of the watchdog of control process ``pid`` (flat ``params``)."""
     import json
-    return ['--heartbeat-fd', str(heartbeat_fd), '--pid', str(pid), '--params',
-            json.dumps(params)]
+    return ['--heartbeat-fd', str(heartbeat_fd), '--pid', str(pid), '--plan',
+            json.dumps(plan(params))]
 
 
 class WatchdogProcess:
@@ -284,38 +311,30 @@ def main(argv=None) -> int:
     from .can_io import CanIo, open_bus_or_fail
     from .sensor_intake import die_with_parent
     from ..core import realtime
-    from ..core.balance_loop import all_stop_frames
-    from ..core.config import BalanceConfig
-    from ..core.schema import from_flat
+    from ..core.protocols.base import Frame
 
     parser = argparse.ArgumentParser(description='balance_node watchdog (started by '
                                      'balance_node, not by hand)')
     parser.add_argument('--heartbeat-fd', type=int, required=True)
     parser.add_argument('--pid', type=int, required=True, help='the control process')
-    parser.add_argument('--params', required=True, help='the configuration as JSON')
+    parser.add_argument('--plan', required=True, help='its buses and frames as JSON (plan)')
     args = parser.parse_args(argv)
     die_with_parent()
     stopping = []
     for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT):
         signal.signal(signum, lambda s, f: stopping.append(s))
-    cfg = from_flat(BalanceConfig, json.loads(args.params))
+    todo = json.loads(args.plan)
     heartbeat = Heartbeat(args.heartbeat_fd)
-    wheel_frames, leg_frames = all_stop_frames(cfg)
     send_timeout = 0.01
-
-    def bus(channel):
-        return CanIo(open_bus_or_fail(cfg.can.interface, channel, cfg.can.udp_port,
-                                      "the watchdog's CAN bus"), send_timeout,
-                     raw_frames=cfg.can.raw_frames)
-    buses = [(bus(cfg.can.channel), wheel_frames)]
-    if leg_frames:
-        if cfg.legs.channel and cfg.legs.channel != cfg.can.channel:
-            buses.append((bus(cfg.legs.channel), leg_frames))
-        else:
-            buses[0] = (buses[0][0], wheel_frames + leg_frames)
+    buses = []
+    for channel, frames in todo['buses']:
+        buses.append((CanIo(open_bus_or_fail(todo['interface'], channel, todo['udp_port'],
+                                             "the watchdog's CAN bus"), send_timeout,
+                            raw_frames=todo['raw_frames']),
+                      [Frame(i, bytes.fromhex(data), ext) for i, data, ext in frames]))
     # Above the loop: the watchdog sleeps nearly always, and must run when the loop spins.
-    if cfg.loop.realtime_priority > 0:
-        realtime.set_fifo_priority(min(99, cfg.loop.realtime_priority + 1))
+    if todo['realtime_priority'] > 0:
+        realtime.set_fifo_priority(min(99, todo['realtime_priority'] + 1))
     alive, wait = _process_watch(args.pid)
 
     def fire(state: int, age: float) -> None:
@@ -331,7 +350,7 @@ def main(argv=None) -> int:
               'motor mode sent to every motor; restart balance_node'
               % (STATE_TEXT[state], 1e3 * age), file=sys.stderr, flush=True)
 
-    dog = Watchdog(heartbeat, stall_limit(cfg), alive, fire, sleep=wait)
+    dog = Watchdog(heartbeat, todo['limit'], alive, fire, sleep=wait)
     try:
         dog.run(lambda: bool(stopping))
     finally:

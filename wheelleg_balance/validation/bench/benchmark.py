@@ -20,15 +20,23 @@ benchmark: does the 2 ms balance loop hold in Python? Everything measured in one
 5. bus: the node's CAN traffic through CanIo alone, on python-can's udp_multicast bus and on
    a python-can SocketcanBus over loopback UDP, both as CanIo runs there and through
    python-can's recv and send, each in its own process (bench/bus.py): what each path costs;
-   after a node part on udp_multicast, estimates of the node's CPU on SocketCAN (not targets).
+   after a node part on udp_multicast, estimates of the node's CPU on SocketCAN (not targets);
+6. start: from the balance_node executable (what ``ros2 run`` starts) to its ready line, the
+   median of ``--start-runs`` starts (bench/start.py), with ``--before-tree`` that tree's too,
+   the two taking turns;
+7. replay: valgrind's instruction count of ``BalanceLoop.tick`` alone, 1000 ticks of the six
+   motors balancing and driving, its inputs replayed from a recording (bench/replay.py; the
+   motors and the replay's own work not counted), and the wall time of the same ticks; for
+   this tree, ``--before-tree``'s and each ``--replay-tree``'s. Skipped with one line where
+   valgrind is missing.
 
 Prints a table and writes a JSON report; the targets are reported pass/fail, they never change
 the exit code (1 only when a part could not run). Methods and figures: docs/benchmarks.md.
 
     ros2 run wheelleg_balance benchmark [--duration 60] [--output output/benchmark.json]
-        [--quick] [--parts core,floor,baseline,node,bus] [--profile] [--before-tree DIR]
+        [--quick] [--parts core,floor,baseline,node,bus,start] [--profile] [--before-tree DIR]
         [--node-param NAME:=VALUE] [--rounds N] [--before-param NAME:=VALUE]
-        [--bus socketcan_hub|udp_multicast]
+        [--bus socketcan_hub|udp_multicast] [--start-runs N] [--replay-tree DIR]
 """
 import argparse
 import datetime
@@ -48,13 +56,14 @@ import numpy as np
 
 from . import bus as bench_bus, core as bench_core, node as bench_node, \
     profiling as bench_profile
+from . import replay as bench_replay, start as bench_start
 from .stats import check, period_stats
 from .. import child_env, json_safe
 from ...core.config import BalanceConfig
 from ...core.pipeline import CONTROLLER_NAMES
 from ...core.realtime import kernel_is_preempt_rt
 
-PARTS = ('core', 'floor', 'baseline', 'node', 'bus')
+PARTS = ('core', 'floor', 'baseline', 'node', 'bus', 'start', 'replay')
 PERIOD_NS = 2_000_000
 LATE_NS = 1_000_000
 
@@ -141,6 +150,14 @@ def run_bus(args, env: Dict[str, str], workdir: str) -> Dict:
     return result
 
 
+def run_start(args, env: Dict[str, str]) -> Dict:
+    """Run the start part: this tree's starts, taking turns with --before-tree's."""
+    nodes = [bench_start.tree_command(None, env)]
+    if args.before_tree:
+        nodes.append(bench_start.tree_command(args.before_tree, env))
+    return bench_start.run(nodes, args.start_runs, log=lambda s: print(s, flush=True))
+
+
 def before_node(args) -> bench_node.NodeUnderTest:
     """
     Describe the 'before' node: another tree's, or this one's with ``--before-param``.
@@ -183,6 +200,10 @@ def targets(report: Dict) -> List[Dict]:
     for key in ('node', 'node_before'):
         if report.get(key):
             rows += node_targets(report[key], floor, 'node' if key == 'node' else 'before')
+    if report.get('start'):
+        rows += bench_start.targets(report['start'])
+    if report.get('replay'):
+        rows += bench_replay.targets(report['replay'])
     return rows
 
 
@@ -287,6 +308,10 @@ def print_report(report: Dict, out=sys.stdout) -> None:
             print_node(key, report[key], w)
     print_rounds(report, w)
     print_bus(report, w)
+    if report.get('start'):
+        bench_start.print_report(report['start'], w)
+    if report.get('replay'):
+        bench_replay.print_report(report['replay'], w)
     if report['targets']:
         w('\n  %-34s %14s %14s  %s\n' % ('target', 'value', 'limit', 'result'))
         for t in report['targets']:
@@ -433,6 +458,12 @@ def parse_args(argv=None):
     parser.add_argument('--rounds', type=int, default=1,
                         help='measure the node this many times (with a before node in ABBA '
                         'order); the round of median CPU is reported for each tree')
+    parser.add_argument('--start-runs', type=int, default=bench_start.RUNS,
+                        help='starts of each tree in the start part (default %d; the median '
+                        'is the figure)' % bench_start.RUNS)
+    parser.add_argument('--replay-tree', action='append', default=[], metavar='DIR',
+                        help="the replay part also counts this source tree's tick "
+                        "(repeatable; after --before-tree's)")
     parser.add_argument('--workdir', default=None,
                         help='keep the raw recordings (npz, logs) here instead of a temp dir')
     args = parser.parse_args(argv)
@@ -456,6 +487,8 @@ def parse_args(argv=None):
         parser.error('--duration must be >= 1 s and --ticks >= 100')
     if args.rounds < 1:
         parser.error('--rounds must be >= 1')
+    if args.start_runs < 1:
+        parser.error('--start-runs must be >= 1')
     return args
 
 
@@ -475,7 +508,8 @@ def main(argv=None) -> int:
                      'late_threshold_ms': 1.0, 'ros_domain_id': int(env['ROS_DOMAIN_ID']),
                      'before_tree': args.before_tree, 'node_params': args.node_param,
                      'before_params': args.before_param, 'bus': args.bus,
-                     'rounds': args.rounds},
+                     'rounds': args.rounds, 'start_runs': args.start_runs,
+                     'replay_trees': args.replay_tree},
         'errors': {},
     }
     steps = {
@@ -485,6 +519,10 @@ def main(argv=None) -> int:
         'node_before': lambda: run_node(args, env, workdir, before_node(args), tag='_before'),
         'node': lambda: run_node(args, env, workdir),
         'bus': lambda: run_bus(args, env, workdir),
+        'start': lambda: run_start(args, env),
+        'replay': lambda: bench_replay.bench(
+            [None] + ([args.before_tree] if args.before_tree else []) + args.replay_tree,
+            args.quick, log=lambda s: print(s, flush=True)),
     }
     parts = list(args.parts)
     if 'node' in parts:

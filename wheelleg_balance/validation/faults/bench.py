@@ -128,7 +128,7 @@ class LoopBench:
     @property
     def has_legs(self) -> bool:
         """Return whether hip joints are configured (l from joint_states)."""
-        return self.loop.has_leg_joints
+        return self.loop.sensing.has_leg_joints
 
     def set_wheel_motion(self, left: Tuple[float, float], right: Tuple[float, float]) -> None:
         """Set the wheels' (angle [rad], speed [rad/s]), forward positive, for the replies."""
@@ -243,7 +243,7 @@ class LoopBench:
     @property
     def rejected_cmd_vel(self) -> int:
         """Return the cmd_vel messages dropped so far (diagnostics value rejected_cmd_vel)."""
-        return self.loop.rejected_cmd_vel
+        return self.loop.balancing.rejected_cmd_vel
 
     def wheel_torques(self) -> Tuple[float, float]:
         """Return the wheel torques of the newest tick as ~/state holds them [N m]."""

@@ -232,7 +232,7 @@ def scenario_lifted(context, tilt_deg: float = 0.0, driven: bool = True) -> Outc
     # Held, the legs overshoot the length they had at the fault (they were extending: the
     # weight's share pushed them until then) and sag under the hanging wheels, then stay. The
     # damping of the other faults would let them run out to their stops (0.7 m).
-    hold = ls.loop._lift_hold
+    hold = ls.loop.legs_task.lift_hold
     after = [row['l_true'] for row in ls.log if row['t'] >= t_zero]
     if out.check('legs held at their length at the fault', hold is not None):
         dev = max(abs(v - 0.5 * (hold[0] + hold[1])) for v in after)

@@ -1,0 +1,71 @@
+"""
+balance_node's publishers of what the loop sends back: ~/state, odom, joint_states and TF.
+
+Each state frame (core/tick_io.py) carries its publication flags: the ~/state values and TF
+(base_footprint -> base_link, and odom -> base_footprint with ``enable_odom_tf``:
+nodes/transforms.py) when ``PUBLISH_STATE`` is set, the odometry when ``PUBLISH_ODOM`` is; the
+joints' values come with the state. Messages are made once and refilled.
+"""
+import math
+
+from nav_msgs.msg import Odometry
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray, MultiArrayDimension
+
+from . import lean
+from .transforms import TfPublisher
+from ..core.config import BalanceConfig
+from ..core.sensing import joint_names
+from ..core.tick_io import FLAGS, N_STATE, ODOM, PUBLISH_ODOM, PUBLISH_STATE, STATE_FIELDS
+
+
+class StatePublisher:
+    """The publishers of a balance_node (see the module docstring)."""
+
+    def __init__(self, node, cfg: BalanceConfig):
+        def publisher(msg_type, topic):
+            return node.create_publisher(msg_type, topic, 10,
+                                         event_callbacks=lean.publisher_events())
+        self._state_msg = Float64MultiArray()
+        self._state_msg.layout.dim = [MultiArrayDimension(
+            label=','.join(STATE_FIELDS), size=N_STATE, stride=N_STATE)]
+        self._state_pub = publisher(Float64MultiArray, '~/state')
+        self._odom_msg = _odometry(cfg)
+        self._odom_pub = publisher(Odometry, 'odom')
+        self._joint_msg = JointState(name=joint_names(cfg))
+        self._joint_pub = publisher(JointState, 'joint_states')
+        self._tf = TfPublisher(node, cfg)
+
+    def publish(self, values, joints, stamp) -> None:
+        """Publish a state frame (an array('d'): float64[] fields take it unchecked)."""
+        flags = int(values[FLAGS])
+        x, y, yaw, x_dot, yaw_rate = values[ODOM]
+        if flags & PUBLISH_STATE:
+            self._state_msg.data = values[:N_STATE]
+            self._state_pub.publish(self._state_msg)
+            self._tf.publish(stamp, values, (x, y, yaw))
+        if flags & PUBLISH_ODOM:
+            msg = self._odom_msg
+            msg.header.stamp = stamp
+            msg.pose.pose.position.x, msg.pose.pose.position.y = x, y
+            msg.pose.pose.orientation.z = math.sin(0.5 * yaw)
+            msg.pose.pose.orientation.w = math.cos(0.5 * yaw)
+            msg.twist.twist.linear.x, msg.twist.twist.angular.z = x_dot, yaw_rate
+            self._odom_pub.publish(msg)
+        if joints:
+            msg, n = self._joint_msg, len(self._joint_msg.name)
+            msg.header.stamp = stamp
+            msg.position, msg.velocity, msg.effort = joints[0:n], joints[n:2 * n], joints[2 * n:]
+            self._joint_pub.publish(msg)
+
+
+def _odometry(cfg: BalanceConfig) -> Odometry:
+    pub = cfg.publish
+    msg = Odometry()
+    msg.header.frame_id = pub.odom_frame_id
+    msg.child_frame_id = pub.footprint_frame_id   # the odometry's pose is the footprint's
+    for k, c in enumerate(pub.pose_covariance_diagonal):
+        msg.pose.covariance[7 * k] = c
+    for k, c in enumerate(pub.twist_covariance_diagonal):
+        msg.twist.covariance[7 * k] = c
+    return msg
