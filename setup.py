@@ -26,7 +26,7 @@ class BuildPyWithTables(build_py):
         folder = os.path.join(self.build_lib, package_name, 'core', 'tables')
         env = dict(os.environ, PYTHONPATH=os.pathsep.join(
             p for p in (os.path.abspath(self.build_lib), os.environ.get('PYTHONPATH')) if p))
-        code = ('from wheelleg_balance.core.table_cache import write_defaults; '
+        code = ('from wheelleg_balance.core.default_tables import write_defaults; '
                 'write_defaults(%r)' % os.path.abspath(folder))
         if subprocess.call([sys.executable, '-P', '-c', code], env=env) != 0:
             self.warn('height tables not solved: balance_node solves them at its start')

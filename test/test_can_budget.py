@@ -39,7 +39,7 @@ def test_a_catch_up_burst_fits_the_tx_queue(queue, per_tick, want):
 
 
 def test_control_loop_bounds_its_catch_up_by_the_configured_queue():
-    from wheelleg_balance.nodes.control_process import ControlRunner, MAX_CATCH_UP
+    from wheelleg_balance.nodes.control_runner import ControlRunner, MAX_CATCH_UP
     limit = ControlRunner.catch_up_limit
     robot = {'legs.driven': True}
     assert limit(from_flat(BalanceConfig, robot), False) == MAX_CATCH_UP

@@ -14,7 +14,7 @@ import textwrap
 
 import pytest
 
-from wheelleg_balance.core import table_cache
+from wheelleg_balance.core import default_tables, table_cache
 from wheelleg_balance.validation.bench import start
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
@@ -85,7 +85,7 @@ def test_the_ros_shell_imports_neither_scipy_nor_python_can():
 
 def test_the_control_loop_with_its_tables_found_solves_nothing(tmp_path):
     """The default loop's tables in the cache folder: scipy's solvers are never imported."""
-    table_cache.write_defaults(str(tmp_path))
+    default_tables.write_defaults(str(tmp_path))
     env = dict(os.environ, **{table_cache.CACHE_ENV: str(tmp_path)})
     mods = _modules_after(textwrap.dedent("""
         import wheelleg_balance.nodes.control_process

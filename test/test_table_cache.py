@@ -12,7 +12,7 @@ import os
 import numpy as np
 import pytest
 
-from wheelleg_balance.core import lqr, observer, table_cache
+from wheelleg_balance.core import default_tables, lqr, observer, table_cache
 from wheelleg_balance.core.balance_loop import BalanceLoop
 from wheelleg_balance.core.config import BalanceConfig
 from wheelleg_balance.core.params import CONTROL_PERIOD, RobotParams
@@ -51,7 +51,7 @@ def _same_bits(a, b) -> bool:
 
 
 def test_the_default_tables_read_back_are_the_solved_ones_bit_for_bit(cache, monkeypatch):
-    assert table_cache.write_defaults(str(cache)) == 2   # the observer's and the LQR's
+    assert default_tables.write_defaults(str(cache)) == 2   # the observer's and the LQR's
     table_cache.forget()
     _no_solving(monkeypatch)
     loop = BalanceLoop(BalanceConfig())
@@ -91,7 +91,7 @@ def test_a_robots_own_model_reads_back_its_own_solution(cache, monkeypatch):
 
 
 def test_other_inputs_are_other_tables(cache, monkeypatch):
-    table_cache.write_defaults(str(cache))
+    default_tables.write_defaults(str(cache))
     table_cache.forget()
     solved = []
     real = lqr.lqr_gain

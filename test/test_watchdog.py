@@ -178,7 +178,7 @@ def test_the_watchdog_stops_every_motor_as_the_loop_does(legs):
 def test_the_control_runner_beats_commanding_while_armed_and_ends_the_heartbeat(heartbeat):
     """The ControlRunner beats at each pass: commanding while BALANCING, then ENDED."""
     from wheelleg_balance.nodes import control_link as L
-    from wheelleg_balance.nodes.control_process import ControlRunner
+    from wheelleg_balance.nodes.control_runner import ControlRunner
     from wheelleg_balance.nodes.sensor_intake import imu_sample
     from wheelleg_balance.validation.faults.bench import make_imu
     from wheelleg_balance.validation.faults.doubles import FakeMotors

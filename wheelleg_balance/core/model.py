@@ -47,6 +47,23 @@ def ipc_accel_moving(theta: float, theta_dot: float, u: float, l: float, l_dot: 
     return (f2 - c * x_ddot) / l, x_ddot
 
 
+def theta_ddot_free_and_driven(theta: float, theta_dot: float, u: float, l: float,
+                               m: float, M: float, g: float) -> tuple:
+    """
+    Return model (1)'s theta_ddot [rad/s^2] at height l [m] with no force and with force u [N].
+
+    The same operations as ``ipc_accel_moving`` with l fixed, shared by the two: the response
+    check (core/response.py) needs both once a tick.
+    """
+    s = math.sin(theta)
+    c = math.cos(theta)
+    f1 = m * l * s * theta_dot * theta_dot
+    f2 = g * s
+    mcf2 = m * c * f2
+    den = M + m * s * s
+    return (f2 - c * ((f1 - mcf2) / den)) / l, (f2 - c * ((u + f1 - mcf2) / den)) / l
+
+
 def ipc_accel(theta: float, theta_dot: float, u: float, l: float,
               p: RobotParams) -> tuple:
     """

@@ -68,12 +68,12 @@ def position_jump(p_prev: float, v_prev: float, t_prev: float, p: float, v: floa
     (RECEIPT_JITTER) are not counted: a loaded host's late or bunched replies are no reboot.
     """
     gap = t - t_prev
-    predicted = p_prev + 0.5 * (v_prev + v) * gap
-    d = p - predicted
-    if math.isfinite(span) and span > 0.0:
+    v_sum = v_prev + v
+    d = p - (p_prev + 0.5 * v_sum * gap)
+    if 0.0 < span < math.inf:
         d = (d + 0.5 * span) % span - 0.5 * span
-    return max(0.0, abs(d) - 0.5 * MAX_ACCELERATION * gap * gap
-               - 0.5 * abs(v_prev + v) * RECEIPT_JITTER)
+    d = abs(d) - 0.5 * MAX_ACCELERATION * gap * gap - 0.5 * abs(v_sum) * RECEIPT_JITTER
+    return d if d > 0.0 else 0.0
 
 
 def judge_motors(sets, wheels, name) -> Tuple[float, Optional[str], List[Tuple[str, str]]]:

@@ -79,22 +79,21 @@ class MotorSet:
 
     def on_frame(self, t: float, frame: Frame) -> Optional[Motor]:
         """Take a received frame at monotonic time ``t`` [s]; return the motor that replied."""
-        motor = self.by_id.get(self.protocol.reply_motor_id(frame))
-        if motor is None:
-            return None  # not a reply, or another motor set's (or a stranger's) on the bus
-        feedback = self.protocol.decode_feedback(frame)
+        by_id = self.by_id
+        feedback = self.protocol.decode_reply(frame, by_id)
         if feedback is None:
-            return None
+            return None  # not a reply, or another motor set's (or a stranger's) on the bus
+        motor = by_id[feedback.motor_id]
         prev = motor.feedback
-        if prev is not None and motor.rebooted is None and self.jump_limit < math.inf \
-                and abs(prev.velocity) < self.speed_limit \
-                and abs(feedback.velocity) < self.speed_limit:
-            jump = position_jump(prev.position, prev.velocity, motor.last_reply,
-                                 feedback.position, feedback.velocity, t, self.span)
-            if jump > self.jump_limit:
-                motor.rebooted = ('position jumped by %.2f rad (jump limit %.2f rad): rebooted? '
-                                  'its angle is known only modulo a rotor turn'
-                                  % (jump, self.jump_limit))
+        if prev is not None and motor.rebooted is None and self.jump_limit < math.inf:
+            limit = self.speed_limit
+            if -limit < prev.velocity < limit and -limit < feedback.velocity < limit:
+                jump = position_jump(prev.position, prev.velocity, motor.last_reply,
+                                     feedback.position, feedback.velocity, t, self.span)
+                if jump > self.jump_limit:
+                    motor.rebooted = ('position jumped by %.2f rad (jump limit %.2f rad): '
+                                      'rebooted? its angle is known only modulo a rotor turn'
+                                      % (jump, self.jump_limit))
         motor.last_reply = t
         motor.replies += 1
         motor.feedback = feedback

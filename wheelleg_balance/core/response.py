@@ -43,13 +43,15 @@ from collections import deque
 import math
 from typing import Deque, Optional, Tuple
 
-from .model import ipc_accel
+from .model import theta_ddot_free_and_driven
 from .params import RobotParams
 
 #: |theta~ - d_hat| [rad] up to which the caller judges: the tail stays off the ground, and a
 #: start-up from the tail has left it (MuJoCo's fixed-legs start-up throws the robot off its
 #: wheels near 18 deg).
 MAX_PITCH = math.radians(15.0)
+#: The window's sums are summed afresh after this many samples (rounding kept at a few ulp).
+REFRESH = 256
 
 
 class ResponseCheck:
@@ -69,6 +71,11 @@ class ResponseCheck:
         self.gain = gain
         self.hold = hold
         self._samples: Deque[Tuple[float, float, float, float]] = deque()   # (t, x, y, w)
+        # The fit's sums over the window (sxx, sxy, sxw, swy, sww), kept as samples come and
+        # go instead of summed afresh per tick; summed afresh every REFRESH samples so that
+        # rounding cannot pile up.
+        self._sums = [0.0] * 5
+        self._added = 0
         self._theta_dot: Optional[float] = None
         # The model's terms since the newest IMU sample [rad/s], and that sample's mark.
         self._x = self._free = self._span = 0.0
@@ -84,6 +91,7 @@ class ResponseCheck:
     def reset(self) -> None:
         """Forget everything (the wheels are not commanded)."""
         self._samples.clear()
+        self._sums = [0.0] * 5
         self._theta_dot = None
         self._x = self._free = self._span = 0.0
         self._sample = None
@@ -104,13 +112,15 @@ class ResponseCheck:
         torque to the next's (the IMU and the loop are not in step on a robot), None: every
         tick has one. A non-finite input restarts the window.
         """
-        if not all(math.isfinite(v) for v in (theta, theta_dot, u, l, dt)) or dt <= 0.0 \
-                or l <= 0.0:
+        isfinite = math.isfinite
+        if not (isfinite(theta) and isfinite(theta_dot) and isfinite(u) and isfinite(l)
+                and isfinite(dt)) or dt <= 0.0 or l <= 0.0:
             self.reset()
             return None
         p = self.params
-        free = ipc_accel(theta, theta_dot, 0.0, l, p)[0]
-        self._x += dt * (ipc_accel(theta, theta_dot, u, l, p)[0] - free)
+        free, driven = theta_ddot_free_and_driven(theta, theta_dot, u, l, p.body_mass,
+                                                  p.wheel_mass, p.gravity)
+        self._x += dt * (driven - free)
         self._free += dt * free
         if sample is not None and sample == self._sample:
             self._span += dt
@@ -122,23 +132,32 @@ class ResponseCheck:
         self._x = self._free = self._span = 0.0
         if previous is None:
             return None
-        samples = self._samples
+        samples, sums = self._samples, self._sums
         samples.append((now, x, y, w))
-        while now - samples[0][0] >= self.window - 1e-9:
-            samples.popleft()
+        sums[0] += x * x
+        sums[1] += x * y
+        sums[2] += x * w
+        sums[3] += w * y
+        sums[4] += w * w
+        span = self.window - 1e-9
+        while now - samples[0][0] >= span:
+            _, xo, yo, wo = samples.popleft()
+            sums[0] -= xo * xo
+            sums[1] -= xo * yo
+            sums[2] -= xo * wo
+            sums[3] -= wo * yo
+            sums[4] -= wo * wo
+        self._added += 1
+        if self._added >= REFRESH:
+            self._added = 0
+            self._resum()
         if not judge:
             return None
         if now - samples[0][0] < 0.5 * self.window - 1.5 * dt:
             return None   # too few ticks yet (after arming): half a window at least
         # y = k x + c w by least squares: c w is the residual's slow part over each
         # sample's time w (constant c: a plain intercept where the samples come evenly).
-        sxx = sxy = sxw = swy = sww = 0.0
-        for _, xi, yi, wi in samples:
-            sxx += xi * xi
-            sxy += xi * yi
-            sxw += xi * wi
-            swy += wi * yi
-            sww += wi * wi
+        sxx, sxy, sxw, swy, sww = sums
         spread = sxx - sxw * sxw / sww   # x's part that w does not explain
         self.excitation = math.sqrt(max(spread, 0.0))
         if self.excitation < self.min_effect:
@@ -158,3 +177,14 @@ class ResponseCheck:
                 '(1) predicts (down to %.2f) for %.0f ms; check imu_mounting_rpy (the IMU '
                 'turned?) and can.left_direction / can.right_direction'
                 % (self.k, self._k_min, 1e3 * self.wrong_time))
+
+    def _resum(self) -> None:
+        """Sum the fit's terms over the window afresh."""
+        sxx = sxy = sxw = swy = sww = 0.0
+        for _, xi, yi, wi in self._samples:
+            sxx += xi * xi
+            sxy += xi * yi
+            sxw += xi * wi
+            swy += wi * yi
+            sww += wi * wi
+        self._sums = [sxx, sxy, sxw, swy, sww]

@@ -9,7 +9,7 @@ them once and afterwards looks them up:
 
 1. in this process's memory (the fault suite, the experiments and the tuning build many cores);
 2. among the package's tables (``tables/`` beside this module): the build solves those of the
-   default configuration into the installed package (setup.py runs ``write_defaults``);
+   default configuration into the installed package (setup.py runs core/default_tables.py);
 3. in a cache folder, where a process that asked for it (``keep_in``: balance_node's control
    process) writes what it had to solve, such as the tables of a robot's own model parameters.
 
@@ -21,13 +21,14 @@ temporary name and renamed into place; a file whose key or shape does not match 
 No scipy solver is imported here (its top level only, for the version): solving is the
 caller's, and a table found is not solved.
 """
+from contextlib import contextmanager
 import dataclasses
 import hashlib
 import json
 import os
 import platform
 import tempfile
-from typing import Callable, Dict, Optional, Tuple
+from typing import Callable, Dict, Iterator, Optional, Tuple
 
 import numpy as np
 
@@ -148,15 +149,15 @@ def forget() -> None:
     _memory.clear()
 
 
-def write_defaults(folder: str) -> int:
+@contextmanager
+def solving_into(folder: str) -> Iterator[None]:
     """
-    Solve the default configuration's tables into ``folder`` (the build's); return their count.
+    Within the block, solve every table anew and write it into ``folder`` (the build's).
 
-    The folder's older tables go first: it holds exactly what this build solved.
+    The folder's older tables go first: it holds exactly what was solved within the block
+    (core/default_tables.py solves the default configuration's).
     """
     global _package
-    from .balance_loop import BalanceLoop
-    from .config import BalanceConfig
     os.makedirs(folder, exist_ok=True)
     for name in os.listdir(folder):
         if name.endswith('.json'):
@@ -166,8 +167,7 @@ def write_defaults(folder: str) -> int:
     keep_in(folder)
     forget()
     try:
-        BalanceLoop(BalanceConfig())
+        yield
     finally:
         _package, _ = previous
         keep_in(previous[1])
-    return sum(1 for n in os.listdir(folder) if n.endswith('.json'))

@@ -6,7 +6,7 @@ sensor instead of the wall clock: one tick per IMU sample, at the sample's heade
 every receipt time of that tick (samples, CAN replies, commands) is that stamp, so every
 timeout runs on simulated time. sim_node steps its physics once it has the frames of the
 tick, so the closed loop is the same on an idle machine and on a loaded one, only slower
-(docs/simulation.md). ``LockstepRunner`` is nodes/control_process.py's ``ControlRunner`` with
+(docs/simulation.md). ``LockstepRunner`` is nodes/control_runner.py's ``ControlRunner`` with
 that clock; the robot's runner has none of it.
 
 Never on a robot: a silent IMU would stop the clock. The configuration allows it only on the
@@ -22,7 +22,7 @@ import time
 from typing import Optional
 
 from . import control_link as L
-from .control_process import ControlRunner, IDLE_WAKE, STATUS_PERIOD
+from .control_runner import ControlRunner, IDLE_WAKE, STATUS_PERIOD
 from .watchdog import WATCHING
 from ..core.safety import COMMANDING
 

@@ -91,6 +91,17 @@ class MotorProtocol(ABC):
         feedback = self.decode_feedback(frame)
         return None if feedback is None else feedback.motor_id
 
+    def decode_reply(self, frame: Frame, motor_ids) -> Optional[MotorFeedback]:
+        """
+        Return the reply of one of ``motor_ids`` (a set or dict of IDs) decoded, else None.
+
+        What a motor set calls for every received frame: a protocol may do it in one pass
+        (the MIT codec does). Never raises.
+        """
+        if self.reply_motor_id(frame) not in motor_ids:
+            return None
+        return self.decode_feedback(frame)
+
 
 def frame_bytes(frame: Frame) -> Optional[bytes]:
     """Return a standard frame's data as bytes; None if extended or malformed (never raises)."""

@@ -59,6 +59,10 @@ def uint_to_float(x_int: int, x_min: float, x_max: float, bits: int) -> float:
     return x_int * (x_max - x_min) / ((1 << bits) - 1) + x_min
 
 
+#: A MotorFeedback from a tuple of its fields without NamedTuple's __new__ (a Python call).
+_feedback = tuple.__new__
+
+
 class MitCommand(NamedTuple):
     """A decoded MIT command: tau = kp (p - q) + kd (v - q_dot) + torque on the motor."""
 
@@ -104,6 +108,9 @@ class MitProtocol(MotorProtocol):
         v0 = float_to_uint(0.0, self.v_min, self.v_max, 12)
         self._torque_prefix = bytes((p0 >> 8, p0 & 0xFF, v0 >> 4, (v0 & 0xF) << 4, 0, 0))
         self._t_span = self.t_max - self.t_min
+        #: decode_reply's ranges: (x_min, x_max - x_min) of position, velocity, torque.
+        self._reply_fields = (self.p_min, self.p_max - self.p_min, self.v_min,
+                              self.v_max - self.v_min, self.t_min, self._t_span)
         #: command_frame's fields: (x_min, x_max, largest code, x_max - x_min) for float_to_uint.
         self._fields = tuple((lo, hi, (1 << bits) - 1, hi - lo) for (lo, hi), bits in zip(
             ((self.p_min, self.p_max), (self.v_min, self.v_max), (0.0, self.kp_max),
@@ -198,6 +205,40 @@ class MitProtocol(MotorProtocol):
         return MotorFeedback(motor_id, uint_to_float(p, self.p_min, self.p_max, 16),
                              uint_to_float(v, self.v_min, self.v_max, 12),
                              uint_to_float(t, self.t_min, self.t_max, 12), temperature, error)
+
+    def decode_reply(self, frame: Frame, motor_ids) -> Optional[MotorFeedback]:
+        """
+        Return the reply of one of ``motor_ids`` decoded (decode_feedback), else None.
+
+        One pass over the frame, six a tick: a bytes payload is read as it is (frame_bytes
+        copies and checks it; a reply's ID, master_id or byte 0, is a standard one anyway).
+        """
+        data = frame.data
+        if type(data) is not bytes or frame.is_extended_id:
+            data = frame_bytes(frame)   # the careful path: any other payload, extended IDs
+            if data is None:
+                return None
+        n = len(data)
+        if n != 6 and n != 8:
+            return None
+        motor_id = data[0]
+        if motor_id not in motor_ids:
+            return None
+        i = frame.arbitration_id
+        if i != self.master_id and i != motor_id:
+            return None
+        # uint_to_float of each field, the same operations (x_int * span / top + x_min).
+        p_min, p_span, v_min, v_span, t_min, t_span = self._reply_fields
+        d4 = data[4]
+        temperature = error = None
+        if n == 8:
+            d6 = data[6]
+            temperature = float(d6 - 256 if d6 > 127 else d6)  # int8 [deg C]
+            error = data[7]
+        return _feedback(MotorFeedback, (
+            motor_id, ((data[1] << 8) | data[2]) * p_span / 65535 + p_min,
+            ((data[3] << 4) | (d4 >> 4)) * v_span / 4095 + v_min,
+            (((d4 & 0xF) << 8) | data[5]) * t_span / 4095 + t_min, temperature, error))
 
     def reply_motor_id(self, frame: Frame) -> Optional[int]:
         """Return byte 0 of what decode_feedback would accept as a reply, else None."""

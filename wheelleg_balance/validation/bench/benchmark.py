@@ -43,7 +43,6 @@ import datetime
 import json
 import math
 import os
-import platform
 import random
 import shutil
 import subprocess
@@ -57,11 +56,11 @@ import numpy as np
 from . import bus as bench_bus, core as bench_core, node as bench_node, \
     profiling as bench_profile
 from . import replay as bench_replay, start as bench_start
+from .host import machine, package_env
 from .stats import check, period_stats
-from .. import child_env, json_safe
+from .. import json_safe
 from ...core.config import BalanceConfig
 from ...core.pipeline import CONTROLLER_NAMES
-from ...core.realtime import kernel_is_preempt_rt
 
 PARTS = ('core', 'floor', 'baseline', 'node', 'bus', 'start', 'replay')
 PERIOD_NS = 2_000_000
@@ -76,15 +75,6 @@ TICK_OVER_BUDGET_PCT = 1.0
 RATE_TOLERANCE = 0.001         # achieved rate within 0.1 % of 500 Hz
 FLOOR_FACTOR = 1.2             # p99 period and late share no worse than 1.2 x the floor's
 NODE_CPU_PERCENT = 35.0
-
-
-def package_env() -> Dict[str, str]:
-    """Environment for the child processes: this package importable, ROS isolated per run."""
-    env = child_env()
-    env['ROS_DOMAIN_ID'] = str(random.randint(1, 101))
-    env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-    env['PYTHONUNBUFFERED'] = '1'
-    return env
 
 
 def _loop_command(kind: str, duration: float, out: str, fifo: int) -> List[str]:
@@ -249,14 +239,6 @@ def _float(text) -> float:
         return float(text)
     except (TypeError, ValueError):
         return math.nan
-
-
-def machine() -> Dict:
-    """Describe the machine the figures are measured on."""
-    return {'cpus': os.cpu_count(), 'cpus_allowed': len(os.sched_getaffinity(0)),
-            'kernel': platform.release(), 'preempt_rt': kernel_is_preempt_rt(),
-            'python': platform.python_version(), 'processor': platform.machine(),
-            'load_average': [round(v, 2) for v in os.getloadavg()]}
 
 
 # ---------------------------------------------------------------------------------- output

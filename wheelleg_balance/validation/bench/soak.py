@@ -530,7 +530,7 @@ def run(duration: float, workdir: str, env: Dict[str, str], baseline: Optional[s
     ``duration`` s: one after the other, so that each has the machine to itself as far as the
     run goes (a 2-core machine cannot hold two nodes, their plants and the churn at once).
     """
-    from .benchmark import machine
+    from .host import machine
     nuts = {}
     if baseline:
         path = os.path.abspath(baseline)

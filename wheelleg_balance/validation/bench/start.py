@@ -261,11 +261,11 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if args.runs < 1:
         parser.error('--runs must be >= 1')
-    from . import benchmark
-    env = benchmark.package_env()
+    from . import host
+    env = host.package_env()
     nodes = [tree_command(None, env)] + [tree_command(t, env) for t in args.tree]
     report = {'date': datetime.datetime.now().isoformat(timespec='seconds'),
-              'machine': benchmark.machine()}
+              'machine': host.machine()}
     report.update(run(nodes, args.runs, log=lambda s: print(s, flush=True)))
     report['targets'] = targets(report)
     os.makedirs(os.path.dirname(os.path.abspath(args.output)), exist_ok=True)
