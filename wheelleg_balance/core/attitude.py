@@ -251,10 +251,25 @@ def body_attitude(mounting: ImuMounting, orientation: Quaternion, covariance0: f
     garbage in one field is not trusted in the others.
     """
     try:
-        if orientation_valid(orientation, covariance0):
-            roll, pitch = roll_pitch_from_quaternion(*mounting.orientation_to_body(orientation))
-            if roll == roll:
-                return Attitude(roll, pitch, 'orientation')
+        if covariance0 != -1.0:
+            # orientation_valid, the mounting's orientation_to_body (quaternion_multiply) and
+            # roll_pitch_from_quaternion inlined, the same operations (a sample a tick). The
+            # sqrt of a NaN or inf norm fails the comparison, as math.isfinite would.
+            x, y, z, w = orientation
+            if abs(math.sqrt(x * x + y * y + z * z + w * w) - 1.0) <= QUATERNION_NORM_TOLERANCE:
+                bx, by, bz, bw = mounting._q_ib
+                qx = w * bx + x * bw + y * bz - z * by
+                qy = w * by - x * bz + y * bw + z * bx
+                qz = w * bz + x * by - y * bx + z * bw
+                qw = w * bw - x * bx - y * by - z * bz
+                if abs(math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw) - 1.0) \
+                        <= QUATERNION_NORM_TOLERANCE:
+                    # Up in body coordinates (roll_pitch_from_up).
+                    uy, uz = 2.0 * (qy * qz + qw * qx), qw * qw - qx * qx - qy * qy + qz * qz
+                    roll = math.atan2(uy, uz)
+                    if roll == roll:
+                        return _attitude(Attitude, (roll, math.atan2(
+                            -(2.0 * (qx * qz - qw * qy)), math.hypot(uy, uz)), 'orientation'))
         if not orientation_absent(orientation, covariance0):
             return Attitude(NAN, NAN, 'none')
         f_b = mounting.vector_to_body(linear_acceleration)
@@ -265,6 +280,10 @@ def body_attitude(mounting: ImuMounting, orientation: Quaternion, covariance0: f
     if roll == roll and pitch == pitch:
         return Attitude(roll, pitch, 'gravity')
     return Attitude(NAN, NAN, 'none')
+
+
+#: An Attitude from a tuple of its fields without NamedTuple's __new__ (a Python call).
+_attitude = tuple.__new__
 
 
 # ---- poses for the safety supervisor -------------------------------------------------------

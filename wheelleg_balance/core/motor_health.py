@@ -88,20 +88,26 @@ def judge_motors(sets, wheels, name) -> Tuple[float, Optional[str], List[Tuple[s
     """
     problems, hot, scale = [], None, 1.0
     for motors, model in sets:
+        temp_max = model.temp_max
         for m in motors.motors:
             fb = m.feedback
             if fb is None:
                 continue
-            code, m.error = m.error, 0
+            code = m.error
             if code:
+                m.error = 0
                 problems.append((MOTOR_ERROR, '%s error %d: %s'
                                  % (name(m), code, error_reason(code))))
             if m.rebooted is not None:
                 problems.append((MOTOR_REBOOTED, '%s %s' % (name(m), m.rebooted)))
-            t = fb.temperature
+            t = fb[4]   # temperature [deg C] or None
+            if t is None:
+                continue   # derate gives 1.0: the scale stays
             if motors is wheels:
-                scale = min(scale, derate(t, model.temp_derate, model.temp_max))
-            if t is not None and t >= model.temp_max:
-                hot = '%s at %.0f deg C, temp_max %.0f deg C' % (name(m), t, model.temp_max)
+                share = derate(t, model.temp_derate, temp_max)
+                if share < scale:
+                    scale = share
+            if t >= temp_max:
+                hot = '%s at %.0f deg C, temp_max %.0f deg C' % (name(m), t, temp_max)
                 problems.append(('', hot))
     return scale, hot, problems

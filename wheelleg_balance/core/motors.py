@@ -11,8 +11,10 @@ import math
 from typing import Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
 
 from .actuation import check_direction
-from .motor_health import position_jump
+from .motor_health import MAX_ACCELERATION, RECEIPT_JITTER
 from .protocols.base import Frame, MotorFeedback, MotorProtocol
+
+_INF = math.inf
 
 
 class Motor:
@@ -83,13 +85,24 @@ class MotorSet:
         feedback = self.protocol.decode_reply(frame, by_id)
         if feedback is None:
             return None  # not a reply, or another motor set's (or a stranger's) on the bus
-        motor = by_id[feedback.motor_id]
+        # MotorFeedback's fields by index (motor_id, position, velocity, torque, temperature,
+        # error): a reply or six a tick, each name a descriptor call.
+        motor = by_id[feedback[0]]
         prev = motor.feedback
-        if prev is not None and motor.rebooted is None and self.jump_limit < math.inf:
+        if prev is not None and motor.rebooted is None and self.jump_limit < _INF:
             limit = self.speed_limit
-            if -limit < prev.velocity < limit and -limit < feedback.velocity < limit:
-                jump = position_jump(prev.position, prev.velocity, motor.last_reply,
-                                     feedback.position, feedback.velocity, t, self.span)
+            v_prev, v = prev[2], feedback[2]
+            if -limit < v_prev < limit and -limit < v < limit:
+                # motor_health.position_jump inlined (the same operations, in its order).
+                gap = t - motor.last_reply
+                v_sum = v_prev + v
+                d = feedback[1] - (prev[1] + 0.5 * v_sum * gap)
+                span = self.span
+                if 0.0 < span < _INF:
+                    d = (d + 0.5 * span) % span - 0.5 * span
+                d = abs(d) - 0.5 * MAX_ACCELERATION * gap * gap \
+                    - 0.5 * abs(v_sum) * RECEIPT_JITTER
+                jump = d if d > 0.0 else 0.0
                 if jump > self.jump_limit:
                     motor.rebooted = ('position jumped by %.2f rad (jump limit %.2f rad): '
                                       'rebooted? its angle is known only modulo a rotor turn'
@@ -97,8 +110,8 @@ class MotorSet:
         motor.last_reply = t
         motor.replies += 1
         motor.feedback = feedback
-        if feedback.error:
-            motor.error = feedback.error
+        if feedback[5]:
+            motor.error = feedback[5]
         self.reply_times[motor.motor_id] = t
         self.rx_replies += 1
         return motor
@@ -115,10 +128,11 @@ class MotorSet:
 
     def torque_frames(self, torques: Mapping[str, float]) -> List[Frame]:
         """Frames commanding {motor name: joint torque [N m]} (directions applied here)."""
-        by_name = self.by_name
-        return self.protocol.torque_frames({
-            by_name[name].motor_id: by_name[name].direction * tau
-            for name, tau in torques.items()})
+        by_name, motor_torques = self.by_name, {}
+        for name, tau in torques.items():   # a loop, not a comprehension: one call less a tick
+            m = by_name[name]
+            motor_torques[m.motor_id] = m.direction * tau
+        return self.protocol.torque_frames(motor_torques)
 
     def zero_torque_frames(self, names: Optional[Iterable[str]] = None) -> List[Frame]:
         """Zero-torque commands, staying in motor mode (all motors by default)."""

@@ -127,6 +127,10 @@ class Sensing:
                              for m in self.motors.motors] if self.from_can else []
         self._wheel_state_of = {m.motor_id: w for m, w in zip(self.motors.motors,
                                                               self.wheel_states)}
+        #: The hips' IDs that are no wheel's, where the wheels speak MIT: a frame with one of
+        #: them in byte 0 is no wheel reply (take).
+        self._hip_only = frozenset(self.hips.by_id).difference(self.motors.by_id) \
+            if self.hips is not None and isinstance(self.protocol, MitProtocol) else frozenset()
         #: The hips' angles come from joint_states_in (legs of another driver).
         self.has_leg_joints = bool(joint_state_reader(cfg).legs)
         self._wheels: Optional[JointSample] = None   # newest sample with the wheels
@@ -171,23 +175,33 @@ class Sensing:
         accel: the robot's own forward acceleration [m/s^2] (the IMU's gravity fallback);
         events: where a one-time warning goes, as (level, text).
         """
-        for sample in imu:
-            self.imu.take(sample, accel)
+        if imu:
+            take_imu = self.imu.take
+            for sample in imu:
+                take_imu(sample, accel)
         for sample in joints:
             if sample.has_wheels:
                 self._wheels = sample
             if sample.has_legs:
                 self.legs_js = sample
-        hips = self.hips
+        hips, hip_only, on_frame = self.hips, self._hip_only, self.motors.on_frame
+        wheel_state_of = self._wheel_state_of
         for t, frame in frames:
-            motor = self.motors.on_frame(t, frame)
+            data = frame.data
+            if hip_only and type(data) is bytes and data and data[0] in hip_only:
+                # Byte 0 names a hip only: no wheel reply (the wheels' MIT codec reads the
+                # replying motor's ID there), so the wheels need not decode it.
+                if hips.on_frame(t, frame) is None:
+                    self._note_foreign(t, frame)
+                continue
+            motor = on_frame(t, frame)
             if motor is None:
                 if hips is None or hips.on_frame(t, frame) is None:
                     self._note_foreign(t, frame)
-            elif self.from_can:
+            elif wheel_state_of:   # wheel_state_source: can
                 fb = motor.feedback
-                wheel = self._wheel_state_of[motor.motor_id]
-                wheel.update(fb.position, fb.velocity, t)
+                wheel = wheel_state_of[motor.motor_id]
+                wheel.update(fb[1], fb[2], t)   # position, velocity
                 if wheel.mismatch and motor.motor_id not in self._mismatch_warned:
                     self._warn_mismatch(motor, wheel, events)
 
@@ -204,8 +218,7 @@ class Sensing:
             times = self.motors.reply_times.values()
             s.joint_time = None if None in times else min(times)
             ws = self.wheel_states
-            s.wheel_vel_left, s.wheel_vel_right = ws[0].reading(now).speed, \
-                ws[1].reading(now).speed
+            s.wheel_vel_left, s.wheel_vel_right = ws[0].speed, ws[1].speed   # reading's
         elif self._wheels is None:
             s.joint_time, s.wheel_vel_left, s.wheel_vel_right = None, math.nan, math.nan
         else:

@@ -17,7 +17,7 @@ measurements the tick uses:
 import math
 from typing import NamedTuple, Optional, Sequence, Tuple
 
-from .attitude import body_attitude, ImuMounting, pitch_rate, yaw_rate
+from .attitude import body_attitude, ImuMounting
 from .kinematics import FiveBarLeg
 
 NAN = math.nan
@@ -94,31 +94,39 @@ class ImuReader:
 
         forward_acceleration [m/s^2]: the robot's own, for the gravity fallback.
         """
+        t, sec, nanosec, qx, qy, qz, qw, valid, wx, wy, wz, ax, ay, az, clock = s
         # One integer [ns]: a pair compares wrongly when nanosec is not normalised (>= 1e9).
-        stamp = s.stamp_sec * 1_000_000_000 + s.stamp_nanosec
+        stamp = sec * 1_000_000_000 + nanosec
         if stamp == self._stamp and stamp != 0:
             # A driver republishing one sample: keep the first receipt time so it goes stale.
             self.frozen += 1
             return False
         if stamp != 0:   # unstamped drivers: receipt time only
-            refused = self._stamp_problem(stamp, s.clock)
+            refused = self._stamp_problem(stamp, clock)
             if refused is not None:
                 self.refused_stamps += 1
                 self.refused_reason = refused
                 return False
         self._stamp = stamp
-        self.time = s.t
-        att = body_attitude(self.mounting, (s.qx, s.qy, s.qz, s.qw),
-                            0.0 if s.orientation_valid else -1.0, (s.ax, s.ay, s.az),
-                            forward_acceleration, gravity=self.gravity)
-        self.theta, self.roll, self.source = att.pitch, att.roll, att.source
-        force = math.sqrt(s.ax * s.ax + s.ay * s.ay + s.az * s.az)
+        self.time = t
+        mounting = self.mounting
+        roll, pitch, self.source = body_attitude(mounting, (qx, qy, qz, qw),
+                                                 0.0 if valid else -1.0, (ax, ay, az),
+                                                 forward_acceleration, 0.0, self.gravity)
+        self.theta, self.roll = pitch, roll
+        force = math.sqrt(ax * ax + ay * ay + az * az)
         self.specific_force = force if force > 0.0 else NAN
-        self.gyro = self.mounting.vector_to_body((s.wx, s.wy, s.wz))
-        self.theta_dot = pitch_rate(self.gyro[1], self.gyro[2], att.roll) \
-            if att.roll == att.roll else self.gyro[1]
-        self.yaw_rate = yaw_rate(self.gyro[1], self.gyro[2], att.roll, att.pitch) \
-            if att.roll == att.roll else self.gyro[2]
+        # mounting.vector_to_body, pitch_rate and yaw_rate inlined (the same operations).
+        r0, r1, r2 = mounting._r_bi
+        omega_y = r1[0] * wx + r1[1] * wy + r1[2] * wz
+        omega_z = r2[0] * wx + r2[1] * wy + r2[2] * wz
+        self.gyro = (r0[0] * wx + r0[1] * wy + r0[2] * wz, omega_y, omega_z)
+        if roll == roll:
+            cos_r, sin_r = math.cos(roll), math.sin(roll)
+            self.theta_dot = omega_y * cos_r - omega_z * sin_r
+            self.yaw_rate = (omega_y * sin_r + omega_z * cos_r) / math.cos(pitch)
+        else:
+            self.theta_dot, self.yaw_rate = omega_y, omega_z
         return True
 
     @property

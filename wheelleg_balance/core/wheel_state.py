@@ -76,7 +76,7 @@ motors the robot stops within 3 mm of where it does with wrapping ones
 """
 from collections import deque
 import math
-from typing import NamedTuple, Optional, Tuple
+from typing import NamedTuple, Optional
 
 from .motor_health import RECEIPT_JITTER
 from .protocols.mit import MitProtocol
@@ -89,6 +89,7 @@ STUCK_MIN_SPEED_CODES = 2.0
 #: Share of the speed field's end beyond which no rule judges (the speed field, not the
 #: position, saturates or wraps there: core/balance_loop.py's reboot check skips it alike).
 SPEED_FIELD_SHARE = 0.9
+_INF = math.inf
 
 
 class WheelReading(NamedTuple):
@@ -141,6 +142,7 @@ class WheelState:
         self._judged_speed = SPEED_FIELD_SHARE * min(-mit.v_min, mit.v_max)
         self._v_half = 0.5 * (mit.v_max - mit.v_min) / 4095.0 if centre_codes else 0.0
         self._p_half = 0.5 * self._p_step if centre_codes else 0.0
+        self._p_zero = self._p_min + self._p_half   # the position of code 0 [rad]
         self.reset()
 
     def reset(self) -> None:
@@ -150,6 +152,8 @@ class WheelState:
         self._pos = 0.0                     # unwrapped motor position [rad]
         self._x_hat = 0.0                   # the blend's position [rad]
         self._speed = 0.0                   # motor speed estimate [rad/s]
+        #: The speed in the wheel's convention [rad/s] (reading's), NaN before the first reply.
+        self.speed = math.nan
         self._v_rep = 0.0
         self._origin = 0.0
         self._stamp = -math.inf
@@ -174,128 +178,127 @@ class WheelState:
         Returns False (and changes nothing) for a non-finite value or a stamp older than the
         last one; a reply with the same stamp replaces the position only.
         """
-        if not (math.isfinite(position) and math.isfinite(velocity) and math.isfinite(stamp)) \
-                or stamp < self._stamp:
+        # Two replies a tick: the tracking of the whole turns and the contradiction rules are
+        # inlined here (one Python call each less), in the order of the module docstring.
+        if not (-_INF < position < _INF and -_INF < velocity < _INF and -_INF < stamp < _INF) \
+                or stamp < self._stamp:   # NaN fails the comparisons (math.isfinite)
             self.rejected += 1
             return False
-        code = int(round((position - self._p_min) / self._p_step))
+        p_step = self._p_step
+        code = int(round((position - self._p_min) / p_step))
         v_rep = velocity + self._v_half
-        dt = stamp - self._stamp
-        if self._code is None:
-            self._turns = 0
-            self._pos = self._position(code)
-            self._origin = self._pos
-            self._x_hat, self._speed = self._pos, v_rep
-            self._restart_check()
-            measured = self._pos
+        v_abs = abs(v_rep)
+        last_code = self._code
+        if last_code is None:
+            measured = self._start(code, v_rep)
         else:
-            step = max(dt, 0.0)
-            self._v_int += step * 0.5 * (self._v_rep + v_rep)
-            dead = self._pos + step * 0.5 * (self._speed + v_rep)   # from the speed alone
-            measured = self._track(code, v_rep, step, dead)
-            if dt > self.max_gap:
-                self._restart_check()
-            restart, measured, dead = self._judge(stamp, code, measured, v_rep, dead)
-            self._pos = dead if self.saturated or self.mismatch else measured
-            if restart or dt > self.max_gap:
-                self._x_hat, self._speed = self._pos, v_rep
+            dt = stamp - self._stamp   # >= 0: older stamps are refused above
+            v_prev = self._v_rep
+            self._v_int = v_int = self._v_int + dt * 0.5 * (v_prev + v_rep)
+            move = dt * 0.5 * (self._speed + v_rep)
+            dead = self._pos + move   # from the speed alone
+            wrap = self.wrap
+            # -- tracking: the new unwrapped motor position [rad] of the code
+            if wrap:
+                # Of the candidates 65536 codes apart, take the one nearest to the speed's
+                # prediction (round(off / 65536) is 0 for |off| < 32768 codes).
+                off = move / p_step - (code - last_code)
+                if not -32768.0 < off < 32768.0:
+                    self._turns += int(round(off / 65536.0))
+                measured = self._p_zero + (code + 65536 * self._turns) * p_step
+            elif code == 0 or code == 65535:   # at the range limit: the reading says no more
+                self.saturated = True
+                measured = dead
+            else:
+                self.saturated = False
+                measured = self._p_zero + (code + 65536 * self._turns) * p_step
+            hist = self._hist
+            gap = dt > self.max_gap
+            if gap:   # judge afresh from this reply
+                hist.clear()
+                self._end = None
+            # -- the contradiction rules (sets mismatch; dead from where one began, measured
+            # in the whole turns nearest dead when the position is trusted again)
+            restart = False
+            at_end = code == 0 or code == 65535
+            if not (wrap and at_end) or code != last_code:
+                self._end = None   # not at a range end, or at the other one (the code wrapped)
+            if v_abs >= self._judged_speed:
+                hist.clear()   # the speed field, not the position, is at its end
+                self._end = None
+            else:
+                found, since = '', None
+                while len(hist) >= 2 and hist[1][0] <= stamp - MISMATCH_WINDOW:
+                    hist.popleft()
+                if hist and stamp - hist[0][0] >= MISMATCH_WINDOW:
+                    h = hist[0]
+                    moved, integral = measured - h[1], v_int - h[2]
+                    v_max = h[4] if h[4] > v_abs else v_abs
+                    if abs(moved - integral) > MISMATCH_LIMIT + RECEIPT_JITTER * v_max:
+                        found = ('the position moved %.3f rad in %.0f ms, the reported speed '
+                                 '%.3f rad' % (moved, 1e3 * (stamp - h[0]), integral))
+                        since = h
+                end = self._end
+                if not found and end is not None:
+                    outward = (v_int - end[2]) * (1.0 if code == 65535 else -1.0)
+                    if v_abs > self._stuck_speed and outward > MISMATCH_LIMIT \
+                            + RECEIPT_JITTER * v_abs:
+                        found = ('the position stuck at its range end (%+.2f rad) while the '
+                                 'reported speed (%.2f rad/s) moved the wheel %.3f rad on'
+                                 % (self._p_min + code * p_step, v_rep, outward))
+                        since = end
+                if found or (at_end and wrap):
+                    self._clean_since = None
+                elif self._clean_since is None:
+                    self._clean_since = stamp
+                if found and not self.mismatch:
+                    self.mismatch, restart = True, True
+                    self.mismatches += 1
+                    self.mismatch_reason = found
+                    # Dead-reckon from the reply the contradiction began after: what the
+                    # replies said since is not kept.
+                    dead = since[3] + (v_int - since[2])
+                elif self.mismatch and self._clean_since is not None \
+                        and stamp - self._clean_since >= MISMATCH_WINDOW:
+                    self.mismatch, restart = False, True
+                    if wrap:   # the code's whole turns nearest the dead-reckoned angle
+                        self._turns += int(round((dead - measured) / (65536 * p_step)))
+                        measured = self._p_zero + (code + 65536 * self._turns) * p_step
+            # -- the speed blend
+            self._pos = pos = dead if self.saturated or self.mismatch else measured
+            if restart or gap:
+                self._x_hat, self._speed = pos, v_rep
             elif dt > 0.0:
-                alpha = min(1.0, dt / self.time_constant)
-                pred = self._x_hat + dt * 0.5 * (self._v_rep + v_rep)   # trapezoid: no lag
-                err = self._pos - pred
+                alpha = dt / self.time_constant
+                if not alpha < 1.0:   # min(1.0, dt / tau)
+                    alpha = 1.0
+                pred = self._x_hat + dt * 0.5 * (v_prev + v_rep)   # trapezoid: no lag
+                err = pos - pred
                 self._x_hat = pred + alpha * err
                 self._speed = v_rep + alpha * err / dt
         self._code = code
         self._v_rep = v_rep
         self._stamp = stamp
         self.replies += 1
-        entry = (stamp, measured, self._v_int, self._pos, abs(v_rep))
+        self.speed = self.direction * self._speed
+        entry = (stamp, measured, self._v_int, self._pos, v_abs)
         self._hist.append(entry)
-        if self._end is None and self.wrap and code in (0, 65535):
+        if self._end is None and self.wrap and (code == 0 or code == 65535):
             self._end = entry
         return True
 
-    def _restart_check(self) -> None:
-        """Judge afresh from the next reply (the first, or after a gap)."""
+    def _start(self, code: int, v_rep: float) -> float:
+        """Take the first reply (after a reset): its position [rad] is the origin."""
+        self._turns = 0
+        self._pos = self._position(code)
+        self._origin = self._pos
+        self._x_hat, self._speed = self._pos, v_rep
         self._hist.clear()
         self._end = None
-
-    def _judge(self, stamp: float, code: int, measured: float, v_rep: float,
-               dead: float) -> Tuple[bool, float, float]:
-        """
-        Apply the contradiction rules to a reply (sets ``mismatch``).
-
-        measured: the position the codes say [rad] (unwrapped); dead: the angle dead-reckoned
-        from the previous one [rad]. Returns (the angle changes source, measured, dead), the
-        last two as they are to be used: dead from where a contradiction began, measured in
-        the whole turns nearest dead when the position is trusted again.
-        """
-        at_end = code == 0 or code == 65535
-        if not (self.wrap and at_end) or code != self._code:
-            self._end = None   # not at a range end, or at the other one (the code wrapped)
-        if abs(v_rep) >= self._judged_speed:
-            self._restart_check()   # the speed field, not the position, is at its end
-            return False, measured, dead
-        hist, found, since = self._hist, '', None
-        while len(hist) >= 2 and hist[1][0] <= stamp - MISMATCH_WINDOW:
-            hist.popleft()
-        if hist and stamp - hist[0][0] >= MISMATCH_WINDOW:
-            h = hist[0]
-            moved, integral = measured - h[1], self._v_int - h[2]
-            if abs(moved - integral) > MISMATCH_LIMIT + RECEIPT_JITTER * max(abs(v_rep), h[4]):
-                found = ('the position moved %.3f rad in %.0f ms, the reported speed %.3f rad'
-                         % (moved, 1e3 * (stamp - h[0]), integral))
-                since = h
-        end = self._end
-        if not found and end is not None:
-            outward = (self._v_int - end[2]) * (1.0 if code == 65535 else -1.0)
-            if abs(v_rep) > self._stuck_speed and outward > MISMATCH_LIMIT \
-                    + RECEIPT_JITTER * abs(v_rep):
-                found = ('the position stuck at its range end (%+.2f rad) while the reported '
-                         'speed (%.2f rad/s) moved the wheel %.3f rad on'
-                         % (self._p_min + code * self._p_step, v_rep, outward))
-                since = end
-        if found or (at_end and self.wrap):
-            self._clean_since = None
-        elif self._clean_since is None:
-            self._clean_since = stamp
-        if found and not self.mismatch:
-            self.mismatch = True
-            self.mismatches += 1
-            self.mismatch_reason = found
-            # Dead-reckon from the reply the contradiction began after: what the replies said
-            # since is not kept.
-            return True, measured, since[3] + (self._v_int - since[2])
-        if self.mismatch and self._clean_since is not None \
-                and stamp - self._clean_since >= MISMATCH_WINDOW:
-            self.mismatch = False
-            if self.wrap:   # the code's whole turns nearest the dead-reckoned angle
-                self._turns += int(round((dead - measured) / (65536 * self._p_step)))
-                measured = self._position(code)
-            return True, measured, dead
-        return False, measured, dead
+        return self._pos
 
     def _position(self, code: int) -> float:
-        return self._p_min + self._p_half + (code + 65536 * self._turns) * self._p_step
-
-    def _track(self, code: int, v_rep: float, dt: float, dead: float) -> float:
-        """
-        Return the new unwrapped motor position [rad] for a position code.
-
-        dead: the angle dead-reckoned from the speed [rad], what a saturating firmware's
-        reading at its range limit stands for (``wrap=False``).
-        """
-        if not self.wrap:
-            if code in (0, 65535):      # at the range limit: the reading says nothing more
-                self.saturated = True
-                return dead
-            self.saturated = False
-            return self._position(code)
-        # Of the candidates 65536 codes apart, take the one nearest to the speed's prediction.
-        expected = max(dt, 0.0) * 0.5 * (self._speed + v_rep) / self._p_step
-        delta = code - self._code
-        self._turns += int(round((expected - delta) / 65536.0))
-        return self._position(code)
+        return self._p_zero + (code + 65536 * self._turns) * self._p_step
 
     def reading(self, now: float) -> WheelReading:
         """Return the estimate in the wheel's convention, with the reply's age at now [s]."""

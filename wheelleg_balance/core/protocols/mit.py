@@ -59,8 +59,10 @@ def uint_to_float(x_int: int, x_min: float, x_max: float, bits: int) -> float:
     return x_int * (x_max - x_min) / ((1 << bits) - 1) + x_min
 
 
-#: A MotorFeedback from a tuple of its fields without NamedTuple's __new__ (a Python call).
-_feedback = tuple.__new__
+#: A MotorFeedback (a Frame) from a tuple of all its fields without NamedTuple's __new__ (a
+#: Python call).
+_feedback = _frame = tuple.__new__
+_INF = math.inf
 
 
 class MitCommand(NamedTuple):
@@ -111,10 +113,10 @@ class MitProtocol(MotorProtocol):
         #: decode_reply's ranges: (x_min, x_max - x_min) of position, velocity, torque.
         self._reply_fields = (self.p_min, self.p_max - self.p_min, self.v_min,
                               self.v_max - self.v_min, self.t_min, self._t_span)
-        #: command_frame's fields: (x_min, x_max, largest code, x_max - x_min) for float_to_uint.
-        self._fields = tuple((lo, hi, (1 << bits) - 1, hi - lo) for (lo, hi), bits in zip(
-            ((self.p_min, self.p_max), (self.v_min, self.v_max), (0.0, self.kp_max),
-             (0.0, self.kd_max), (self.t_min, self.t_max)), (16, 12, 12, 12, 12)))
+        #: command_frame's ranges: x_min, x_max, x_max - x_min of p and v; kp_max; kd_max; t's.
+        self._ranges = (self.p_min, self.p_max, self.p_max - self.p_min, self.v_min, self.v_max,
+                        self.v_max - self.v_min, self.kp_max, self.kd_max, self.t_min,
+                        self.t_max, self._t_span)
 
     # ---- host side -------------------------------------------------------------------------
 
@@ -127,17 +129,31 @@ class MitProtocol(MotorProtocol):
         field at its maximum would read FF FF FF FF FF FF FF Fx, which the firmware takes for a
         special frame; keep p below p_max if you ever need such a command.)
         """
-        # float_to_uint of each field, inlined (ten hip frames a tick at most); a non-finite
-        # value (NaN fails both comparisons) is sent as 0.
-        codes = []
-        for x, (lo, hi, top, span) in zip((position, velocity, kp, kd, torque), self._fields):
-            if not -math.inf < x < math.inf:
-                x = 0.0
-            codes.append(int(((hi if x > hi else lo if x < lo else x) - lo) * top / span))
-        p, v, kp_i, kd_i, t = codes
-        data = bytes((p >> 8, p & 0xFF, v >> 4, ((v & 0xF) << 4) | (kp_i >> 8), kp_i & 0xFF,
-                      kd_i >> 4, ((kd_i & 0xF) << 4) | (t >> 8), t & 0xFF))
-        return Frame(motor_id, data)
+        # float_to_uint of each field, inlined and unrolled (ten hip frames a tick at most):
+        # the same operations as (clamp(x) - lo) * top / span; a non-finite value (NaN fails
+        # both comparisons) is sent as 0.
+        p_lo, p_hi, p_span, v_lo, v_hi, v_span, kp_hi, kd_hi, t_lo, t_hi, t_span = self._ranges
+        if not -_INF < position < _INF:
+            position = 0.0
+        p = int(((p_hi if position > p_hi else p_lo if position < p_lo else position) - p_lo)
+                * 65535 / p_span)
+        if not -_INF < velocity < _INF:
+            velocity = 0.0
+        v = int(((v_hi if velocity > v_hi else v_lo if velocity < v_lo else velocity) - v_lo)
+                * 4095 / v_span)
+        if not -_INF < kp < _INF:
+            kp = 0.0
+        kp_i = int(((kp_hi if kp > kp_hi else 0.0 if kp < 0.0 else kp) - 0.0) * 4095 / kp_hi)
+        if not -_INF < kd < _INF:
+            kd = 0.0
+        kd_i = int(((kd_hi if kd > kd_hi else 0.0 if kd < 0.0 else kd) - 0.0) * 4095 / kd_hi)
+        if not -_INF < torque < _INF:
+            torque = 0.0
+        t = int(((t_hi if torque > t_hi else t_lo if torque < t_lo else torque) - t_lo)
+                * 4095 / t_span)
+        return _frame(Frame, (motor_id, bytes((
+            p >> 8, p & 0xFF, v >> 4, ((v & 0xF) << 4) | (kp_i >> 8), kp_i & 0xFF, kd_i >> 4,
+            ((kd_i & 0xF) << 4) | (t >> 8), t & 0xFF)), False))
 
     def torque_frames(self, torques: Dict[int, float]) -> List[Frame]:
         """One torque-only command (p = v = kp = kd = 0) per motor; NaN/inf torque sends 0."""
@@ -151,7 +167,7 @@ class MitProtocol(MotorProtocol):
             elif tau < t_min:
                 tau = t_min
             t = int((tau - t_min) * 4095 / span)  # float_to_uint(tau, t_min, t_max, 12)
-            frames.append(Frame(motor_id, prefix + bytes((t >> 8, t & 0xFF))))
+            frames.append(_frame(Frame, (motor_id, prefix + bytes((t >> 8, t & 0xFF)), False)))
         return frames
 
     def zero_torque_frames(self, motor_ids: Iterable[int]) -> List[Frame]:
