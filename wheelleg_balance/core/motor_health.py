@@ -88,10 +88,15 @@ def judge_motors(sets, wheels, name) -> Tuple[float, Optional[str], List[Tuple[s
     """
     problems, hot, scale = [], None, 1.0
     for motors, model in sets:
+        if not motors.notable:
+            continue   # no temperature, error code or reboot: no problem, a scale of 1
+        notable = False
         temp_max = model.temp_max
         for m in motors.motors:
             fb = m.feedback
             if fb is None:
+                if m.error or m.rebooted is not None:
+                    notable = True   # judged once a reply comes
                 continue
             code = m.error
             if code:
@@ -99,10 +104,12 @@ def judge_motors(sets, wheels, name) -> Tuple[float, Optional[str], List[Tuple[s
                 problems.append((MOTOR_ERROR, '%s error %d: %s'
                                  % (name(m), code, error_reason(code))))
             if m.rebooted is not None:
+                notable = True
                 problems.append((MOTOR_REBOOTED, '%s %s' % (name(m), m.rebooted)))
             t = fb[4]   # temperature [deg C] or None
             if t is None:
                 continue   # derate gives 1.0: the scale stays
+            notable = True
             if motors is wheels:
                 share = derate(t, model.temp_derate, temp_max)
                 if share < scale:
@@ -110,4 +117,5 @@ def judge_motors(sets, wheels, name) -> Tuple[float, Optional[str], List[Tuple[s
             if t >= temp_max:
                 hot = '%s at %.0f deg C, temp_max %.0f deg C' % (name(m), t, temp_max)
                 problems.append(('', hot))
+        motors.notable = notable
     return scale, hot, problems

@@ -78,6 +78,10 @@ class MotorSet:
         self.jump_limit = math.inf
         self.span = math.inf
         self.speed_limit = math.inf
+        #: Something for motor_health.judge_motors to judge: a motor's newest reply carries a
+        #: temperature, an error code is pending, a motor rebooted (it clears the flag after a
+        #: pass that found none; until then every motor is judged each tick).
+        self.notable = True
 
     def on_frame(self, t: float, frame: Frame) -> Optional[Motor]:
         """Take a received frame at monotonic time ``t`` [s]; return the motor that replied."""
@@ -107,11 +111,15 @@ class MotorSet:
                     motor.rebooted = ('position jumped by %.2f rad (jump limit %.2f rad): '
                                       'rebooted? its angle is known only modulo a rotor turn'
                                       % (jump, self.jump_limit))
+                    self.notable = True
         motor.last_reply = t
         motor.replies += 1
         motor.feedback = feedback
         if feedback[5]:
             motor.error = feedback[5]
+            self.notable = True
+        if feedback[4] is not None:   # a temperature
+            self.notable = True
         self.reply_times[motor.motor_id] = t
         self.rx_replies += 1
         return motor

@@ -97,16 +97,18 @@ class ImuReader:
         t, sec, nanosec, qx, qy, qz, qw, valid, wx, wy, wz, ax, ay, az, clock = s
         # One integer [ns]: a pair compares wrongly when nanosec is not normalised (>= 1e9).
         stamp = sec * 1_000_000_000 + nanosec
-        if stamp == self._stamp and stamp != 0:
+        last = self._stamp
+        if stamp == last and stamp != 0:
             # A driver republishing one sample: keep the first receipt time so it goes stale.
             self.frozen += 1
             return False
-        if stamp != 0:   # unstamped drivers: receipt time only
-            refused = self._stamp_problem(stamp, clock)
-            if refused is not None:
-                self.refused_stamps += 1
-                self.refused_reason = refused
-                return False
+        # Unstamped drivers (0): receipt time only. _stamp_problem's two tests, asked here
+        # first (it words the reason).
+        if stamp != 0 and ((last is not None and last != 0 and stamp < last)
+                           or 1e-9 * stamp - clock > self.stamp_tolerance):
+            self.refused_stamps += 1
+            self.refused_reason = self._stamp_problem(stamp, clock)
+            return False
         self._stamp = stamp
         self.time = t
         mounting = self.mounting

@@ -180,12 +180,14 @@ class WheelState:
         """
         # Two replies a tick: the tracking of the whole turns and the contradiction rules are
         # inlined here (one Python call each less), in the order of the module docstring.
-        if not (-_INF < position < _INF and -_INF < velocity < _INF and -_INF < stamp < _INF) \
-                or stamp < self._stamp:   # NaN fails the comparisons (math.isfinite)
+        # x - x is 0.0 for a finite x, NaN for NaN and +-inf: the sum is 0.0 only when all
+        # three are finite (math.isfinite's test, one comparison).
+        if (position - position) + (velocity - velocity) + (stamp - stamp) != 0.0 \
+                or stamp < self._stamp:
             self.rejected += 1
             return False
         p_step = self._p_step
-        code = int(round((position - self._p_min) / p_step))
+        code = round((position - self._p_min) / p_step)   # an int (float.__round__)
         v_rep = velocity + self._v_half
         v_abs = abs(v_rep)
         last_code = self._code
@@ -283,7 +285,7 @@ class WheelState:
         self.speed = self.direction * self._speed
         entry = (stamp, measured, self._v_int, self._pos, v_abs)
         self._hist.append(entry)
-        if self._end is None and self.wrap and (code == 0 or code == 65535):
+        if (code == 0 or code == 65535) and self._end is None and self.wrap:
             self._end = entry
         return True
 

@@ -117,6 +117,9 @@ class MitProtocol(MotorProtocol):
         self._ranges = (self.p_min, self.p_max, self.p_max - self.p_min, self.v_min, self.v_max,
                         self.v_max - self.v_min, self.kp_max, self.kd_max, self.t_min,
                         self.t_max, self._t_span)
+        #: The newest command's kp and kd and their codes (command_frame encodes them anew
+        #: only when they change).
+        self._gain_codes = (math.nan, math.nan, 0, 0)
 
     # ---- host side -------------------------------------------------------------------------
 
@@ -141,33 +144,31 @@ class MitProtocol(MotorProtocol):
             velocity = 0.0
         v = int(((v_hi if velocity > v_hi else v_lo if velocity < v_lo else velocity) - v_lo)
                 * 4095 / v_span)
-        if not -_INF < kp < _INF:
-            kp = 0.0
-        kp_i = int(((kp_hi if kp > kp_hi else 0.0 if kp < 0.0 else kp) - 0.0) * 4095 / kp_hi)
-        if not -_INF < kd < _INF:
-            kd = 0.0
-        kd_i = int(((kd_hi if kd > kd_hi else 0.0 if kd < 0.0 else kd) - 0.0) * 4095 / kd_hi)
+        last_kp, last_kd, kp_i, kd_i = self._gain_codes
+        if kp != last_kp or kd != last_kd:   # the gains change seldom (NaN: every time)
+            self._gain_codes = (kp, kd, _gain_code(kp, kp_hi), _gain_code(kd, kd_hi))
+            kp_i, kd_i = self._gain_codes[2:]
         if not -_INF < torque < _INF:
             torque = 0.0
         t = int(((t_hi if torque > t_hi else t_lo if torque < t_lo else torque) - t_lo)
                 * 4095 / t_span)
-        return _frame(Frame, (motor_id, bytes((
-            p >> 8, p & 0xFF, v >> 4, ((v & 0xF) << 4) | (kp_i >> 8), kp_i & 0xFF, kd_i >> 4,
-            ((kd_i & 0xF) << 4) | (t >> 8), t & 0xFF)), False))
+        # p[16] v[12] kp[12] kd[12] t[12], big-endian.
+        return _frame(Frame, (motor_id, (p << 48 | v << 36 | kp_i << 24 | kd_i << 12 | t)
+                              .to_bytes(8, 'big'), False))
 
     def torque_frames(self, torques: Dict[int, float]) -> List[Frame]:
         """One torque-only command (p = v = kp = kd = 0) per motor; NaN/inf torque sends 0."""
         frames = []
         t_min, t_max, span, prefix = self.t_min, self.t_max, self._t_span, self._torque_prefix
         for motor_id, tau in torques.items():
-            if not -math.inf < tau < math.inf:  # NaN fails both comparisons
+            if not -_INF < tau < _INF:  # NaN fails both comparisons
                 tau = 0.0
             elif tau > t_max:
                 tau = t_max
             elif tau < t_min:
                 tau = t_min
             t = int((tau - t_min) * 4095 / span)  # float_to_uint(tau, t_min, t_max, 12)
-            frames.append(_frame(Frame, (motor_id, prefix + bytes((t >> 8, t & 0xFF)), False)))
+            frames.append(_frame(Frame, (motor_id, prefix + t.to_bytes(2, 'big'), False)))
         return frames
 
     def zero_torque_frames(self, motor_ids: Iterable[int]) -> List[Frame]:
@@ -336,6 +337,13 @@ class MitProtocol(MotorProtocol):
             temp = int(min(127.0, max(-128.0, _finite(temperature))))
             fields += [temp & 0xFF, error & 0xFF]
         return Frame(self.master_id, bytes(fields))
+
+
+def _gain_code(x: float, x_max: float) -> int:
+    """Return float_to_uint(x, 0, x_max, 12), the same operations; non-finite x gives 0."""
+    if not -_INF < x < _INF:
+        x = 0.0
+    return int(((x_max if x > x_max else 0.0 if x < 0.0 else x) - 0.0) * 4095 / x_max)
 
 
 def _finite(x: float) -> float:
