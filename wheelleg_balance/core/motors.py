@@ -17,6 +17,21 @@ from .protocols.base import Frame, MotorFeedback, MotorProtocol
 _INF = math.inf
 
 
+def _quiet(jump_limit: float, span: float) -> float:
+    """
+    Return how far [rad] a reply may be off the extrapolation without the rest of the check.
+
+    Below half the limit the offset stays below it after the wrap (for a span of 4 to 1e6
+    limits the wrap moves it by rounding only, under 1e-9 limits) and the allowances only
+    lower it; 0 (check it all) for a limit below 1 urad, inf or NaN, or another span.
+    """
+    if not 1e-6 <= jump_limit < math.inf:
+        return 0.0
+    if 0.0 < span < math.inf and not 4.0 * jump_limit <= span <= 1e6 * jump_limit:
+        return 0.0
+    return 0.5 * jump_limit
+
+
 class Motor:
     """One motor: name, CAN ID, direction (+1/-1) and what its replies said."""
 
@@ -75,13 +90,33 @@ class MotorSet:
         #: jump_limit [rad], modulo the reply field's span [rad] (inf: no check); not judged
         #: while a speed reading is beyond speed_limit [rad/s] (near the end of its field, where
         #: it saturates or wraps: the extrapolation would be wrong).
-        self.jump_limit = math.inf
-        self.span = math.inf
+        self._jump_limit = self._span = math.inf
+        self._quiet = 0.0
         self.speed_limit = math.inf
         #: Something for motor_health.judge_motors to judge: a motor's newest reply carries a
         #: temperature, an error code is pending, a motor rebooted (it clears the flag after a
         #: pass that found none; until then every motor is judged each tick).
         self.notable = True
+
+    @property
+    def jump_limit(self) -> float:
+        """Return the reboot check's limit [rad] (inf: no check)."""
+        return self._jump_limit
+
+    @jump_limit.setter
+    def jump_limit(self, value: float) -> None:
+        self._jump_limit = value
+        self._quiet = _quiet(value, self._span)
+
+    @property
+    def span(self) -> float:
+        """Return the reply field's span [rad] the reboot check wraps by (inf: no wrap)."""
+        return self._span
+
+    @span.setter
+    def span(self, value: float) -> None:
+        self._span = value
+        self._quiet = _quiet(self._jump_limit, value)
 
     def on_frame(self, t: float, frame: Frame) -> Optional[Motor]:
         """Take a received frame at monotonic time ``t`` [s]; return the motor that replied."""
@@ -93,21 +128,26 @@ class MotorSet:
         # error): a reply or six a tick, each name a descriptor call.
         motor = by_id[feedback[0]]
         prev = motor.feedback
-        if prev is not None and motor.rebooted is None and self.jump_limit < _INF:
+        if prev is not None and motor.rebooted is None and self._jump_limit < _INF:
             limit = self.speed_limit
             v_prev, v = prev[2], feedback[2]
             if -limit < v_prev < limit and -limit < v < limit:
-                # motor_health.position_jump inlined (the same operations, in its order).
+                # motor_health.position_jump inlined (the same operations, in its order),
+                # its end skipped where the offset d cannot exceed the limit (_quiet).
                 gap = t - motor.last_reply
                 v_sum = v_prev + v
                 d = feedback[1] - (prev[1] + 0.5 * v_sum * gap)
-                span = self.span
-                if 0.0 < span < _INF:
-                    d = (d + 0.5 * span) % span - 0.5 * span
-                d = abs(d) - 0.5 * MAX_ACCELERATION * gap * gap \
-                    - 0.5 * abs(v_sum) * RECEIPT_JITTER
-                jump = d if d > 0.0 else 0.0
-                if jump > self.jump_limit:
+                quiet = self._quiet
+                if -quiet < d < quiet:
+                    jump = 0.0
+                else:
+                    span = self._span
+                    if 0.0 < span < _INF:
+                        d = (d + 0.5 * span) % span - 0.5 * span
+                    d = abs(d) - 0.5 * MAX_ACCELERATION * gap * gap \
+                        - 0.5 * abs(v_sum) * RECEIPT_JITTER
+                    jump = d if d > 0.0 else 0.0
+                if jump > self._jump_limit:
                     motor.rebooted = ('position jumped by %.2f rad (jump limit %.2f rad): '
                                       'rebooted? its angle is known only modulo a rotor turn'
                                       % (jump, self.jump_limit))

@@ -235,8 +235,10 @@ class WheelState:
                 if hist and stamp - hist[0][0] >= MISMATCH_WINDOW:
                     h = hist[0]
                     moved, integral = measured - h[1], v_int - h[2]
-                    v_max = h[4] if h[4] > v_abs else v_abs
-                    if abs(moved - integral) > MISMATCH_LIMIT + RECEIPT_JITTER * v_max:
+                    apart = abs(moved - integral)
+                    # (The allowance is MISMATCH_LIMIT or more: the speed term only when over.)
+                    if apart > MISMATCH_LIMIT and apart > MISMATCH_LIMIT + RECEIPT_JITTER * (
+                            h[4] if h[4] > v_abs else v_abs):
                         found = ('the position moved %.3f rad in %.0f ms, the reported speed '
                                  '%.3f rad' % (moved, 1e3 * (stamp - h[0]), integral))
                         since = h
