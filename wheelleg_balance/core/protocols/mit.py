@@ -63,6 +63,8 @@ def uint_to_float(x_int: int, x_min: float, x_max: float, bits: int) -> float:
 #: Python call).
 _feedback = _frame = tuple.__new__
 _INF = math.inf
+#: int()'s truncation of a float without a type call (twice as fast): the encoders' per tick.
+_trunc = math.trunc
 
 
 class MitCommand(NamedTuple):
@@ -138,20 +140,20 @@ class MitProtocol(MotorProtocol):
         p_lo, p_hi, p_span, v_lo, v_hi, v_span, kp_hi, kd_hi, t_lo, t_hi, t_span = self._ranges
         if not -_INF < position < _INF:
             position = 0.0
-        p = int(((p_hi if position > p_hi else p_lo if position < p_lo else position) - p_lo)
-                * 65535 / p_span)
+        p = _trunc(((p_hi if position > p_hi else p_lo if position < p_lo else position) - p_lo)
+                   * 65535 / p_span)
         if not -_INF < velocity < _INF:
             velocity = 0.0
-        v = int(((v_hi if velocity > v_hi else v_lo if velocity < v_lo else velocity) - v_lo)
-                * 4095 / v_span)
+        v = _trunc(((v_hi if velocity > v_hi else v_lo if velocity < v_lo else velocity) - v_lo)
+                   * 4095 / v_span)
         last_kp, last_kd, kp_i, kd_i = self._gain_codes
         if kp != last_kp or kd != last_kd:   # the gains change seldom (NaN: every time)
             self._gain_codes = (kp, kd, _gain_code(kp, kp_hi), _gain_code(kd, kd_hi))
             kp_i, kd_i = self._gain_codes[2:]
         if not -_INF < torque < _INF:
             torque = 0.0
-        t = int(((t_hi if torque > t_hi else t_lo if torque < t_lo else torque) - t_lo)
-                * 4095 / t_span)
+        t = _trunc(((t_hi if torque > t_hi else t_lo if torque < t_lo else torque) - t_lo)
+                   * 4095 / t_span)
         # p[16] v[12] kp[12] kd[12] t[12], big-endian.
         return _frame(Frame, (motor_id, (p << 48 | v << 36 | kp_i << 24 | kd_i << 12 | t)
                               .to_bytes(8, 'big'), False))
@@ -167,7 +169,7 @@ class MitProtocol(MotorProtocol):
                 tau = t_max
             elif tau < t_min:
                 tau = t_min
-            t = int((tau - t_min) * 4095 / span)  # float_to_uint(tau, t_min, t_max, 12)
+            t = _trunc((tau - t_min) * 4095 / span)  # float_to_uint(tau, t_min, t_max, 12)
             frames.append(_frame(Frame, (motor_id, prefix + t.to_bytes(2, 'big'), False)))
         return frames
 
