@@ -53,15 +53,11 @@ _POSES_KEPT = 16
 _UNSOLVED = object()
 
 
-def _once(store: dict, solve, q_front: float, q_rear: float):
-    """Return solve(q_front, q_rear), kept in store (up to _POSES_KEPT pairs, then cleared)."""
-    key = (q_front, q_rear)
-    value = store.get(key, _UNSOLVED)
-    if value is _UNSOLVED:
-        value = solve(q_front, q_rear)
-        if len(store) >= _POSES_KEPT:
-            store.clear()
-        store[key] = value
+def _keep(store: dict, key, value):
+    """Keep value under key in store (up to _POSES_KEPT entries, then cleared); return it."""
+    if len(store) >= _POSES_KEPT:
+        store.clear()
+    store[key] = value
     return value
 
 
@@ -89,8 +85,11 @@ class FiveBarLeg:
         self.q_min = float(q_min)
         self.q_max = float(q_max)
         self._half = 0.5 * self.hip_spacing
-        self._poses: dict = {}
-        self._jacobians: dict = {}
+        #: (q_front, q_rear) -> (pose, Jacobian) of _linkage; -> (l, Jacobian, knees) of measure.
+        self._solutions: dict = {}
+        self._measures: dict = {}
+        #: The last hip_command's height [m] with its angles and Jacobian (a held height).
+        self._held = (NAN, None)
 
     def _knees(self, q_front: float, q_rear: float):
         a, h = self.thigh, self._half
@@ -128,21 +127,50 @@ class FiveBarLeg:
 
     def _pose(self, q_front: float, q_rear: float):
         """Return knees and axle (fx, fz, rx, rz, xc, zc), hip-midpoint frame; None: no reach."""
-        # A tick asks for the height, its rate, the knees, the Jacobian of the same angles:
-        # the linkage is solved once per pair of angles.
-        return _once(self._poses, self._solve, q_front, q_rear)
+        return self._solution(q_front, q_rear)[0]
 
-    def _solve(self, q_front: float, q_rear: float):
-        if not self.in_reach(q_front, q_rear):
-            return None
-        fx, fz, rx, rz = self._knees(q_front, q_rear)
+    def _solution(self, q_front: float, q_rear: float):
+        """Return _linkage(q_front, q_rear), kept: a tick asks for the same angles again."""
+        key = (q_front, q_rear)
+        solution = self._solutions.get(key)
+        if solution is None:
+            solution = _keep(self._solutions, key, self._linkage(q_front, q_rear))
+        return solution
+
+    def _linkage(self, q_front: float, q_rear: float):
+        """
+        Solve the linkage at hip angles [rad]: (pose, Jacobian), see _pose and jacobian.
+
+        (None, None) when not in_reach; (pose, None) when singular (the shanks in line).
+        """
+        lo, hi = self.q_min - STOP_MARGIN, self.q_max + STOP_MARGIN
+        if not (lo <= q_front <= hi and lo <= q_rear <= hi):  # False for NaN too
+            return None, None
+        a, h = self.thigh, self._half
+        sf, cf, sr, cr = math.sin(q_front), math.cos(q_front), math.sin(q_rear), math.cos(q_rear)
+        fx, fz, rx, rz = h + a * cf, -a * sf, -h - a * cr, -a * sr   # the knees
         dx, dz = fx - rx, fz - rz
         d = math.hypot(dx, dz)
+        if not 0.0 < d <= 2.0 * self.shank:
+            return None, None
         ex, ez = dx / d, dz / d
-        half_chord = math.sqrt(max(0.0, self.shank * self.shank - 0.25 * d * d))
+        chord2 = self.shank * self.shank - 0.25 * d * d   # (half the chord)^2, >= 0 bar rounding
+        half_chord = math.sqrt(chord2) if chord2 > 0.0 else 0.0
         # (ez, -ex) is the downward normal when the front knee is ahead of the rear one.
-        return (fx, fz, rx, rz, 0.5 * (fx + rx) + half_chord * ez,
-                0.5 * (fz + rz) - half_chord * ex)
+        xc, zc = 0.5 * (fx + rx) + half_chord * ez, 0.5 * (fz + rz) - half_chord * ex
+        pose = (fx, fz, rx, rz, xc, zc)
+        # Shank vectors knee -> axle, and the knees' velocities per unit hip rate.
+        ufx, ufz = xc - fx, zc - fz
+        urx, urz = xc - rx, zc - rz
+        bf = ufx * (-a * sf) + ufz * (-a * cf)
+        br = urx * (a * sr) + urz * (-a * cr)
+        det = ufx * urz - ufz * urx
+        if abs(det) < 1e-9 * self.shank * self.shank:
+            return pose, None
+        # [ufx ufz; urx urz] dP = diag(bf, br) dq  ->  dP = A^-1 B dq.
+        dxc_f, dxc_r = urz * bf / det, -ufz * br / det
+        dzc_f, dzc_r = -urx * bf / det, ufx * br / det
+        return pose, ((dxc_f, dxc_r), (-dzc_f, -dzc_r))   # l = com_height - zc
 
     def jacobian(self, q_front: float, q_rear: float) -> Optional[Jacobian]:
         """
@@ -152,28 +180,25 @@ class FiveBarLeg:
         (P - K_i) . (dP - dK_i/dq_i dq_i) = 0 for the axle P and knee K_i, two linear equations
         in dP. None when out of reach or singular (the shanks in line).
         """
-        # Asked for up to four times per leg and tick at the same angles (hip rates and torques
-        # of the command, l_dot and the leg force of the state): solved once per pair.
-        return _once(self._jacobians, self._solve_jacobian, q_front, q_rear)
+        # Asked for several times per leg and tick at the same angles (l_dot and the leg
+        # force of the state): solved once per pair.
+        return (self._solutions.get((q_front, q_rear)) or self._solution(q_front, q_rear))[1]
 
-    def _solve_jacobian(self, q_front: float, q_rear: float) -> Optional[Jacobian]:
-        pose = self._pose(q_front, q_rear)
-        if pose is None:
-            return None
-        fx, fz, rx, rz, xc, zc = pose
-        a = self.thigh
-        # Shank vectors knee -> axle, and the knees' velocities per unit hip rate.
-        ufx, ufz = xc - fx, zc - fz
-        urx, urz = xc - rx, zc - rz
-        bf = ufx * (-a * math.sin(q_front)) + ufz * (-a * math.cos(q_front))
-        br = urx * (a * math.sin(q_rear)) + urz * (-a * math.cos(q_rear))
-        det = ufx * urz - ufz * urx
-        if abs(det) < 1e-9 * self.shank * self.shank:
-            return None
-        # [ufx ufz; urx urz] dP = diag(bf, br) dq  ->  dP = A^-1 B dq.
-        dxc_f, dxc_r = urz * bf / det, -ufz * br / det
-        dzc_f, dzc_r = -urx * bf / det, ufx * br / det
-        return (dxc_f, dxc_r), (-dzc_f, -dzc_r)   # l = com_height - zc
+    def measure(self, q_front: float, q_rear: float):
+        """
+        Return (l, Jacobian, knee angles) at measured hip angles [rad], kept per pair of angles.
+
+        l [m] = height(q_front, q_rear), the Jacobian as jacobian() (None: out of reach or
+        singular), the knees (knee_front, knee_rear) [rad] as knee_angles(): the leg state's
+        kinematics in one call.
+        """
+        key = (q_front, q_rear)
+        found = self._measures.get(key)
+        if found is None:
+            found = _keep(self._measures, key, (self.height(q_front, q_rear),
+                                                self.jacobian(q_front, q_rear),
+                                                self.knee_angles(q_front, q_rear)))
+        return found
 
     def height_rate(self, q_front: float, q_rear: float, q_front_dot: float,
                     q_rear_dot: float) -> float:
@@ -215,6 +240,34 @@ class FiveBarLeg:
         (a, b), (c, d) = j
         return a * f_x + c * f_l, b * f_x + d * f_l
 
+    def hip_command(self, l: float, l_dot: float, f_l: float, f_x: float):
+        """
+        Return the hips' (q_front, q_rear, q_front_dot, q_rear_dot, tau_front, tau_rear).
+
+        For the axle l [m] below the COM (x = 0) moving at l_dot [m/s] under the load (f_x, f_l)
+        [N]: q [rad] = inverse(l), the rates [rad/s] = hip_rates(q, l_dot), the torques [N m] =
+        static_torques(q, f_l, f_x), the same values in one call (nan where those give nan).
+        """
+        # The angles and Jacobian of a held height are kept (the legs alternate ticks, and
+        # without levelling both legs share one height); a new height is solved afresh, not
+        # kept with the measured poses (a commanded height seldom comes back exactly).
+        held_l, held = self._held
+        if l == held_l:
+            q_front, q_rear, j = held
+        else:
+            q_front, q_rear = self.inverse(l)
+            j = self._linkage(q_front, q_rear)[1]
+            self._held = (l, (q_front, q_rear, j))
+        if j is None:
+            return q_front, q_rear, NAN, NAN, NAN, NAN
+        (a, b), (c, d) = j
+        det = a * d - b * c
+        if det == 0.0:   # as hip_rates (x_dot = 0)
+            rf = rr = NAN
+        else:
+            rf, rr = (d * 0.0 - b * l_dot) / det, (-c * 0.0 + a * l_dot) / det
+        return q_front, q_rear, rf, rr, a * f_x + c * f_l, b * f_x + d * f_l
+
     def leg_force(self, q_front: float, q_rear: float, tau_front: float,
                   tau_rear: float) -> Tuple[float, float]:
         """
@@ -223,7 +276,8 @@ class FiveBarLeg:
         f_l > 0: the leg pushes the body up (it carries weight); a leg hanging from a lifted
         body holds its wheel: f_l < 0. (nan, nan) when out of reach or singular.
         """
-        j = self.jacobian(q_front, q_rear)
+        # The jacobian() of the state's angles, looked up here (the load is asked every tick).
+        j = (self._solutions.get((q_front, q_rear)) or self._solution(q_front, q_rear))[1]
         if j is None:
             return NAN, NAN
         (a, b), (c, d) = j
