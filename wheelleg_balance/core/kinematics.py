@@ -61,6 +61,14 @@ def _keep(store: dict, key, value):
     return value
 
 
+def _knee_angles(pose, q_front: float, q_rear: float) -> Tuple[float, float]:
+    """Return FiveBarLeg.knee_angles of a solved pose (fx, fz, rx, rz, xc, zc) [m]."""
+    fx, fz, rx, rz, xc, zc = pose
+    phi = math.atan2(-(zc - fz), xc - fx)      # front shank below the forward horizontal
+    psi = math.atan2(-(zc - rz), -(xc - rx))   # rear shank below the backward horizontal
+    return phi - q_front, psi - q_rear
+
+
 class FiveBarLeg:
     """Forward and inverse kinematics of the five-bar leg (see the module docstring)."""
 
@@ -85,9 +93,15 @@ class FiveBarLeg:
         self.q_min = float(q_min)
         self.q_max = float(q_max)
         self._half = 0.5 * self.hip_spacing
-        #: (q_front, q_rear) -> (pose, Jacobian) of _linkage; -> (l, Jacobian, knees) of measure.
+        # Constants of the solves (the geometry is fixed once built), in the same operations.
+        a, b = self.thigh, self.shank
+        self._reach = (self.q_min - STOP_MARGIN, self.q_max + STOP_MARGIN, 2.0 * b, b * b,
+                       1e-9 * b * b)
+        self._ik = (abs(a - b), a + b, a * a - b * b, a * a,
+                    self.q_min - _ANGLE_TOL, self.q_max + _ANGLE_TOL)
+        #: (q_front, q_rear) -> (pose, Jacobian) of _linkage, or measure's (pose, Jacobian, l,
+        #: knees) for measured angles.
         self._solutions: dict = {}
-        self._measures: dict = {}
         #: The last hip_command's height [m] with its angles and Jacobian (a held height).
         self._held = (NAN, None)
 
@@ -143,7 +157,7 @@ class FiveBarLeg:
 
         (None, None) when not in_reach; (pose, None) when singular (the shanks in line).
         """
-        lo, hi = self.q_min - STOP_MARGIN, self.q_max + STOP_MARGIN
+        lo, hi, reach, b2, singular = self._reach
         if not (lo <= q_front <= hi and lo <= q_rear <= hi):  # False for NaN too
             return None, None
         a, h = self.thigh, self._half
@@ -151,10 +165,10 @@ class FiveBarLeg:
         fx, fz, rx, rz = h + a * cf, -a * sf, -h - a * cr, -a * sr   # the knees
         dx, dz = fx - rx, fz - rz
         d = math.hypot(dx, dz)
-        if not 0.0 < d <= 2.0 * self.shank:
+        if not 0.0 < d <= reach:
             return None, None
         ex, ez = dx / d, dz / d
-        chord2 = self.shank * self.shank - 0.25 * d * d   # (half the chord)^2, >= 0 bar rounding
+        chord2 = b2 - 0.25 * d * d   # (half the chord)^2, >= 0 bar rounding
         half_chord = math.sqrt(chord2) if chord2 > 0.0 else 0.0
         # (ez, -ex) is the downward normal when the front knee is ahead of the rear one.
         xc, zc = 0.5 * (fx + rx) + half_chord * ez, 0.5 * (fz + rz) - half_chord * ex
@@ -165,7 +179,7 @@ class FiveBarLeg:
         bf = ufx * (-a * sf) + ufz * (-a * cf)
         br = urx * (a * sr) + urz * (-a * cr)
         det = ufx * urz - ufz * urx
-        if abs(det) < 1e-9 * self.shank * self.shank:
+        if abs(det) < singular:
             return pose, None
         # [ufx ufz; urx urz] dP = diag(bf, br) dq  ->  dP = A^-1 B dq.
         dxc_f, dxc_r = urz * bf / det, -ufz * br / det
@@ -186,18 +200,24 @@ class FiveBarLeg:
 
     def measure(self, q_front: float, q_rear: float):
         """
-        Return (l, Jacobian, knee angles) at measured hip angles [rad], kept per pair of angles.
+        Return (pose, Jacobian, l, knees) at measured hip angles [rad]: the leg state's needs.
 
-        l [m] = height(q_front, q_rear), the Jacobian as jacobian() (None: out of reach or
-        singular), the knees (knee_front, knee_rear) [rad] as knee_angles(): the leg state's
-        kinematics in one call.
+        pose as _pose, the Jacobian as jacobian() (None: out of reach or singular), l [m] as
+        height(), knees (knee_front, knee_rear) [rad] as knee_angles(); kept per pair of angles
+        with the linkage's solution (which then carries the height and knees too).
         """
         key = (q_front, q_rear)
-        found = self._measures.get(key)
-        if found is None:
-            found = _keep(self._measures, key, (self.height(q_front, q_rear),
-                                                self.jacobian(q_front, q_rear),
-                                                self.knee_angles(q_front, q_rear)))
+        solutions = self._solutions
+        found = solutions.get(key)
+        if found is None or len(found) == 2:
+            pose, j = found or self._linkage(q_front, q_rear)
+            if pose is None:
+                found = (None, j, NAN, (NAN, NAN))
+            else:
+                found = (pose, j, self.com_height - pose[5], _knee_angles(pose, q_front, q_rear))
+            if len(solutions) >= _POSES_KEPT:
+                solutions.clear()
+            solutions[key] = found
         return found
 
     def height_rate(self, q_front: float, q_rear: float, q_front_dot: float,
@@ -298,10 +318,7 @@ class FiveBarLeg:
         pose = self._pose(q_front, q_rear)
         if pose is None:
             return NAN, NAN
-        fx, fz, rx, rz, xc, zc = pose
-        phi = math.atan2(-(zc - fz), xc - fx)      # front shank below the forward horizontal
-        psi = math.atan2(-(zc - rz), -(xc - rx))   # rear shank below the backward horizontal
-        return phi - q_front, psi - q_rear
+        return _knee_angles(pose, q_front, q_rear)
 
     def height(self, q_front: float, q_rear: float) -> float:
         """Return the body height l [m] (axle to COM, body-vertical); nan when out of reach."""
@@ -316,30 +333,29 @@ class FiveBarLeg:
         """
         xc = x + self.com_x
         zc = self.com_height - l
-        q_front = self._hip_angle(xc - self._half, zc)
-        q_rear = self._hip_angle(-(xc + self._half), zc)
-        lo, hi = self.q_min - _ANGLE_TOL, self.q_max + _ANGLE_TOL
+        a_b, reach, a2_b2, a2, lo, hi = self._ik   # |a - b|, a + b, a^2 - b^2, a^2, limits
+        q_front = q_rear = NAN
+        # Each hip's thigh angle below its outward horizontal that reaches the axle; (px, pz)
+        # is the axle relative to the hip, px measured outward (forward for the front hip,
+        # backward for the rear one), so both hips share the formula.
+        for rear, px in ((False, xc - self._half), (True, -(xc + self._half))):
+            d2 = px * px + zc * zc
+            d = math.sqrt(d2) if d2 == d2 else NAN
+            if not (a_b <= d <= reach) or d == 0.0:
+                break   # out of reach: nan
+            t = (a2_b2 + d2) / (2.0 * d)       # along hip -> axle
+            h2 = a2 - t * t
+            h = math.sqrt(h2) if h2 > 0.0 else 0.0     # perpendicular, towards the outside
+            ux, uz = px / d, zc / d
+            kx = t * ux - h * uz
+            kz = t * uz + h * ux
+            if rear:
+                q_rear = math.atan2(-kz, kx)
+            else:
+                q_front = math.atan2(-kz, kx)
         if not (lo <= q_front <= hi and lo <= q_rear <= hi):
             return NAN, NAN
         # Rounding can put an angle a hair outside a limit it really sits on.
-        return (min(max(q_front, self.q_min), self.q_max),
-                min(max(q_rear, self.q_min), self.q_max))
-
-    def _hip_angle(self, px: float, pz: float) -> float:
-        """
-        Angle below the outward horizontal of the thigh that reaches the axle.
-
-        (px, pz) is the axle relative to the hip, with px measured outward (forward for the
-        front hip, backward for the rear one), so both hips share this formula.
-        """
-        a, b = self.thigh, self.shank
-        d2 = px * px + pz * pz
-        d = math.sqrt(d2) if d2 == d2 else NAN
-        if not (abs(a - b) <= d <= a + b) or d == 0.0:
-            return NAN
-        t = (a * a - b * b + d2) / (2.0 * d)       # along hip -> axle
-        h = math.sqrt(max(0.0, a * a - t * t))     # perpendicular, towards the outside
-        ux, uz = px / d, pz / d
-        kx = t * ux - h * uz
-        kz = t * uz + h * ux
-        return math.atan2(-kz, kx)
+        lo, hi = self.q_min, self.q_max
+        return (lo if lo > q_front else hi if hi < q_front else q_front,
+                lo if lo > q_rear else hi if hi < q_rear else q_rear)

@@ -393,7 +393,7 @@ class LegController:
             problems += ('no reply from hip %s' % HIP_NAMES[side + k],)
         qf, qr = q
         if qf == qf and qr == qr:
-            l, j, knees = self.leg.measure(qf, qr)
+            _, j, l, knees = self.leg.measure(qf, qr)
             if l != l:
                 problems += ('%s leg out of reach (q = %.3f, %.3f rad)'
                              % ('left' if side == LEFT_LEG else 'right', qf, qr),)
