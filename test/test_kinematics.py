@@ -206,3 +206,27 @@ def test_knees_bend_less_as_the_robot_rises():
     high = LEG.knee_angles(*LEG.inverse(P.height_max))
     assert low[0] == pytest.approx(low[1]) and high[0] == pytest.approx(high[1])
     assert high[0] < low[0] < math.pi
+
+
+@settings(max_examples=100, deadline=None)
+@given(l=st.floats(0.2, 0.9), l_dot=st.floats(-0.3, 0.3), f_l=st.floats(-60.0, 60.0),
+       f_x=st.floats(-20.0, 20.0))
+def test_hip_command_is_inverse_hip_rates_and_static_torques_in_one_call(l, l_dot, f_l, f_x):
+    leg = FiveBarLeg()
+    for _ in range(2):   # solved afresh, then the held height's kept solve
+        got = leg.hip_command(l, l_dot, f_l, f_x)
+        q = LEG.inverse(l)
+        want = q + LEG.hip_rates(*q, l_dot) + LEG.static_torques(*q, f_l, f_x)
+        assert np.array_equal(got, want, equal_nan=True)
+
+
+@settings(max_examples=100, deadline=None)
+@given(q_front=st.floats(-0.4, 1.8), q_rear=st.floats(-0.4, 1.8))
+def test_measure_is_height_jacobian_and_knees_in_one_call(q_front, q_rear):
+    leg = FiveBarLeg()
+    for _ in range(2):   # solved, then kept
+        pose, j, l, knees = leg.measure(q_front, q_rear)
+        assert np.array_equal(l, LEG.height(q_front, q_rear), equal_nan=True)
+        assert j == LEG.jacobian(q_front, q_rear)
+        assert np.array_equal(knees, LEG.knee_angles(q_front, q_rear), equal_nan=True)
+        assert (pose is None) == (not LEG.in_reach(q_front, q_rear))

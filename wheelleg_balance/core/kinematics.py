@@ -53,16 +53,20 @@ _POSES_KEPT = 16
 _UNSOLVED = object()
 
 
-def _once(store: dict, solve, q_front: float, q_rear: float):
-    """Return solve(q_front, q_rear), kept in store (up to _POSES_KEPT pairs, then cleared)."""
-    key = (q_front, q_rear)
-    value = store.get(key, _UNSOLVED)
-    if value is _UNSOLVED:
-        value = solve(q_front, q_rear)
-        if len(store) >= _POSES_KEPT:
-            store.clear()
-        store[key] = value
+def _keep(store: dict, key, value):
+    """Keep value under key in store (up to _POSES_KEPT entries, then cleared); return it."""
+    if len(store) >= _POSES_KEPT:
+        store.clear()
+    store[key] = value
     return value
+
+
+def _knee_angles(pose, q_front: float, q_rear: float) -> Tuple[float, float]:
+    """Return FiveBarLeg.knee_angles of a solved pose (fx, fz, rx, rz, xc, zc) [m]."""
+    fx, fz, rx, rz, xc, zc = pose
+    phi = math.atan2(-(zc - fz), xc - fx)      # front shank below the forward horizontal
+    psi = math.atan2(-(zc - rz), -(xc - rx))   # rear shank below the backward horizontal
+    return phi - q_front, psi - q_rear
 
 
 class FiveBarLeg:
@@ -89,8 +93,17 @@ class FiveBarLeg:
         self.q_min = float(q_min)
         self.q_max = float(q_max)
         self._half = 0.5 * self.hip_spacing
-        self._poses: dict = {}
-        self._jacobians: dict = {}
+        # Constants of the solves (the geometry is fixed once built), in the same operations.
+        a, b = self.thigh, self.shank
+        self._reach = (self.q_min - STOP_MARGIN, self.q_max + STOP_MARGIN, 2.0 * b, b * b,
+                       1e-9 * b * b)
+        self._ik = (abs(a - b), a + b, a * a - b * b, a * a,
+                    self.q_min - _ANGLE_TOL, self.q_max + _ANGLE_TOL)
+        #: (q_front, q_rear) -> (pose, Jacobian) of _linkage, or measure's (pose, Jacobian, l,
+        #: knees) for measured angles.
+        self._solutions: dict = {}
+        #: The last hip_command's height [m] with its angles and Jacobian (a held height).
+        self._held = (NAN, None)
 
     def _knees(self, q_front: float, q_rear: float):
         a, h = self.thigh, self._half
@@ -128,21 +141,50 @@ class FiveBarLeg:
 
     def _pose(self, q_front: float, q_rear: float):
         """Return knees and axle (fx, fz, rx, rz, xc, zc), hip-midpoint frame; None: no reach."""
-        # A tick asks for the height, its rate, the knees, the Jacobian of the same angles:
-        # the linkage is solved once per pair of angles.
-        return _once(self._poses, self._solve, q_front, q_rear)
+        return self._solution(q_front, q_rear)[0]
 
-    def _solve(self, q_front: float, q_rear: float):
-        if not self.in_reach(q_front, q_rear):
-            return None
-        fx, fz, rx, rz = self._knees(q_front, q_rear)
+    def _solution(self, q_front: float, q_rear: float):
+        """Return _linkage(q_front, q_rear), kept: a tick asks for the same angles again."""
+        key = (q_front, q_rear)
+        solution = self._solutions.get(key)
+        if solution is None:
+            solution = _keep(self._solutions, key, self._linkage(q_front, q_rear))
+        return solution
+
+    def _linkage(self, q_front: float, q_rear: float):
+        """
+        Solve the linkage at hip angles [rad]: (pose, Jacobian), see _pose and jacobian.
+
+        (None, None) when not in_reach; (pose, None) when singular (the shanks in line).
+        """
+        lo, hi, reach, b2, singular = self._reach
+        if not (lo <= q_front <= hi and lo <= q_rear <= hi):  # False for NaN too
+            return None, None
+        a, h = self.thigh, self._half
+        sf, cf, sr, cr = math.sin(q_front), math.cos(q_front), math.sin(q_rear), math.cos(q_rear)
+        fx, fz, rx, rz = h + a * cf, -a * sf, -h - a * cr, -a * sr   # the knees
         dx, dz = fx - rx, fz - rz
         d = math.hypot(dx, dz)
+        if not 0.0 < d <= reach:
+            return None, None
         ex, ez = dx / d, dz / d
-        half_chord = math.sqrt(max(0.0, self.shank * self.shank - 0.25 * d * d))
+        chord2 = b2 - 0.25 * d * d   # (half the chord)^2, >= 0 bar rounding
+        half_chord = math.sqrt(chord2) if chord2 > 0.0 else 0.0
         # (ez, -ex) is the downward normal when the front knee is ahead of the rear one.
-        return (fx, fz, rx, rz, 0.5 * (fx + rx) + half_chord * ez,
-                0.5 * (fz + rz) - half_chord * ex)
+        xc, zc = 0.5 * (fx + rx) + half_chord * ez, 0.5 * (fz + rz) - half_chord * ex
+        pose = (fx, fz, rx, rz, xc, zc)
+        # Shank vectors knee -> axle, and the knees' velocities per unit hip rate.
+        ufx, ufz = xc - fx, zc - fz
+        urx, urz = xc - rx, zc - rz
+        bf = ufx * (-a * sf) + ufz * (-a * cf)
+        br = urx * (a * sr) + urz * (-a * cr)
+        det = ufx * urz - ufz * urx
+        if abs(det) < singular:
+            return pose, None
+        # [ufx ufz; urx urz] dP = diag(bf, br) dq  ->  dP = A^-1 B dq.
+        dxc_f, dxc_r = urz * bf / det, -ufz * br / det
+        dzc_f, dzc_r = -urx * bf / det, ufx * br / det
+        return pose, ((dxc_f, dxc_r), (-dzc_f, -dzc_r))   # l = com_height - zc
 
     def jacobian(self, q_front: float, q_rear: float) -> Optional[Jacobian]:
         """
@@ -152,28 +194,31 @@ class FiveBarLeg:
         (P - K_i) . (dP - dK_i/dq_i dq_i) = 0 for the axle P and knee K_i, two linear equations
         in dP. None when out of reach or singular (the shanks in line).
         """
-        # Asked for up to four times per leg and tick at the same angles (hip rates and torques
-        # of the command, l_dot and the leg force of the state): solved once per pair.
-        return _once(self._jacobians, self._solve_jacobian, q_front, q_rear)
+        # Asked for several times per leg and tick at the same angles (l_dot and the leg
+        # force of the state): solved once per pair.
+        return (self._solutions.get((q_front, q_rear)) or self._solution(q_front, q_rear))[1]
 
-    def _solve_jacobian(self, q_front: float, q_rear: float) -> Optional[Jacobian]:
-        pose = self._pose(q_front, q_rear)
-        if pose is None:
-            return None
-        fx, fz, rx, rz, xc, zc = pose
-        a = self.thigh
-        # Shank vectors knee -> axle, and the knees' velocities per unit hip rate.
-        ufx, ufz = xc - fx, zc - fz
-        urx, urz = xc - rx, zc - rz
-        bf = ufx * (-a * math.sin(q_front)) + ufz * (-a * math.cos(q_front))
-        br = urx * (a * math.sin(q_rear)) + urz * (-a * math.cos(q_rear))
-        det = ufx * urz - ufz * urx
-        if abs(det) < 1e-9 * self.shank * self.shank:
-            return None
-        # [ufx ufz; urx urz] dP = diag(bf, br) dq  ->  dP = A^-1 B dq.
-        dxc_f, dxc_r = urz * bf / det, -ufz * br / det
-        dzc_f, dzc_r = -urx * bf / det, ufx * br / det
-        return (dxc_f, dxc_r), (-dzc_f, -dzc_r)   # l = com_height - zc
+    def measure(self, q_front: float, q_rear: float):
+        """
+        Return (pose, Jacobian, l, knees) at measured hip angles [rad]: the leg state's needs.
+
+        pose as _pose, the Jacobian as jacobian() (None: out of reach or singular), l [m] as
+        height(), knees (knee_front, knee_rear) [rad] as knee_angles(); kept per pair of angles
+        with the linkage's solution (which then carries the height and knees too).
+        """
+        key = (q_front, q_rear)
+        solutions = self._solutions
+        found = solutions.get(key)
+        if found is None or len(found) == 2:
+            pose, j = found or self._linkage(q_front, q_rear)
+            if pose is None:
+                found = (None, j, NAN, (NAN, NAN))
+            else:
+                found = (pose, j, self.com_height - pose[5], _knee_angles(pose, q_front, q_rear))
+            if len(solutions) >= _POSES_KEPT:
+                solutions.clear()
+            solutions[key] = found
+        return found
 
     def height_rate(self, q_front: float, q_rear: float, q_front_dot: float,
                     q_rear_dot: float) -> float:
@@ -215,6 +260,34 @@ class FiveBarLeg:
         (a, b), (c, d) = j
         return a * f_x + c * f_l, b * f_x + d * f_l
 
+    def hip_command(self, l: float, l_dot: float, f_l: float, f_x: float):
+        """
+        Return the hips' (q_front, q_rear, q_front_dot, q_rear_dot, tau_front, tau_rear).
+
+        For the axle l [m] below the COM (x = 0) moving at l_dot [m/s] under the load (f_x, f_l)
+        [N]: q [rad] = inverse(l), the rates [rad/s] = hip_rates(q, l_dot), the torques [N m] =
+        static_torques(q, f_l, f_x), the same values in one call (nan where those give nan).
+        """
+        # The angles and Jacobian of a held height are kept (the legs alternate ticks, and
+        # without levelling both legs share one height); a new height is solved afresh, not
+        # kept with the measured poses (a commanded height seldom comes back exactly).
+        held_l, held = self._held
+        if l == held_l:
+            q_front, q_rear, j = held
+        else:
+            q_front, q_rear = self.inverse(l)
+            j = self._linkage(q_front, q_rear)[1]
+            self._held = (l, (q_front, q_rear, j))
+        if j is None:
+            return q_front, q_rear, NAN, NAN, NAN, NAN
+        (a, b), (c, d) = j
+        det = a * d - b * c
+        if det == 0.0:   # as hip_rates (x_dot = 0)
+            rf = rr = NAN
+        else:
+            rf, rr = (d * 0.0 - b * l_dot) / det, (-c * 0.0 + a * l_dot) / det
+        return q_front, q_rear, rf, rr, a * f_x + c * f_l, b * f_x + d * f_l
+
     def leg_force(self, q_front: float, q_rear: float, tau_front: float,
                   tau_rear: float) -> Tuple[float, float]:
         """
@@ -223,7 +296,8 @@ class FiveBarLeg:
         f_l > 0: the leg pushes the body up (it carries weight); a leg hanging from a lifted
         body holds its wheel: f_l < 0. (nan, nan) when out of reach or singular.
         """
-        j = self.jacobian(q_front, q_rear)
+        # The jacobian() of the state's angles, looked up here (the load is asked every tick).
+        j = (self._solutions.get((q_front, q_rear)) or self._solution(q_front, q_rear))[1]
         if j is None:
             return NAN, NAN
         (a, b), (c, d) = j
@@ -244,10 +318,7 @@ class FiveBarLeg:
         pose = self._pose(q_front, q_rear)
         if pose is None:
             return NAN, NAN
-        fx, fz, rx, rz, xc, zc = pose
-        phi = math.atan2(-(zc - fz), xc - fx)      # front shank below the forward horizontal
-        psi = math.atan2(-(zc - rz), -(xc - rx))   # rear shank below the backward horizontal
-        return phi - q_front, psi - q_rear
+        return _knee_angles(pose, q_front, q_rear)
 
     def height(self, q_front: float, q_rear: float) -> float:
         """Return the body height l [m] (axle to COM, body-vertical); nan when out of reach."""
@@ -262,30 +333,29 @@ class FiveBarLeg:
         """
         xc = x + self.com_x
         zc = self.com_height - l
-        q_front = self._hip_angle(xc - self._half, zc)
-        q_rear = self._hip_angle(-(xc + self._half), zc)
-        lo, hi = self.q_min - _ANGLE_TOL, self.q_max + _ANGLE_TOL
+        a_b, reach, a2_b2, a2, lo, hi = self._ik   # |a - b|, a + b, a^2 - b^2, a^2, limits
+        q_front = q_rear = NAN
+        # Each hip's thigh angle below its outward horizontal that reaches the axle; (px, pz)
+        # is the axle relative to the hip, px measured outward (forward for the front hip,
+        # backward for the rear one), so both hips share the formula.
+        for rear, px in ((False, xc - self._half), (True, -(xc + self._half))):
+            d2 = px * px + zc * zc
+            d = math.sqrt(d2) if d2 == d2 else NAN
+            if not (a_b <= d <= reach) or d == 0.0:
+                break   # out of reach: nan
+            t = (a2_b2 + d2) / (2.0 * d)       # along hip -> axle
+            h2 = a2 - t * t
+            h = math.sqrt(h2) if h2 > 0.0 else 0.0     # perpendicular, towards the outside
+            ux, uz = px / d, zc / d
+            kx = t * ux - h * uz
+            kz = t * uz + h * ux
+            if rear:
+                q_rear = math.atan2(-kz, kx)
+            else:
+                q_front = math.atan2(-kz, kx)
         if not (lo <= q_front <= hi and lo <= q_rear <= hi):
             return NAN, NAN
         # Rounding can put an angle a hair outside a limit it really sits on.
-        return (min(max(q_front, self.q_min), self.q_max),
-                min(max(q_rear, self.q_min), self.q_max))
-
-    def _hip_angle(self, px: float, pz: float) -> float:
-        """
-        Angle below the outward horizontal of the thigh that reaches the axle.
-
-        (px, pz) is the axle relative to the hip, with px measured outward (forward for the
-        front hip, backward for the rear one), so both hips share this formula.
-        """
-        a, b = self.thigh, self.shank
-        d2 = px * px + pz * pz
-        d = math.sqrt(d2) if d2 == d2 else NAN
-        if not (abs(a - b) <= d <= a + b) or d == 0.0:
-            return NAN
-        t = (a * a - b * b + d2) / (2.0 * d)       # along hip -> axle
-        h = math.sqrt(max(0.0, a * a - t * t))     # perpendicular, towards the outside
-        ux, uz = px / d, pz / d
-        kx = t * ux - h * uz
-        kz = t * uz + h * ux
-        return math.atan2(-kz, kx)
+        lo, hi = self.q_min, self.q_max
+        return (lo if lo > q_front else hi if hi < q_front else q_front,
+                lo if lo > q_rear else hi if hi < q_rear else q_rear)

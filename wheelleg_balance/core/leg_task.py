@@ -213,6 +213,12 @@ class Legs:
         self.levelling = lc.roll_kp > 0.0 or lc.roll_ki > 0.0
         self.divider = lc.command_divider
         self._phases = ((LEFT_LEG, 0), (RIGHT_LEG, self.divider // 2))
+        #: due(tick) for each tick % divider.
+        self._due = tuple(tuple(leg for leg, at in self._phases if at == phase)
+                          for phase in range(self.divider))
+        #: The hips' replies as read() last passed them, with the feedback they came from.
+        self._replies: List[Optional[tuple]] = [None] * len(motors.motors)
+        self._feedback: list = [None] * len(motors.motors)
         self.state: Optional[LegState] = None
         leg = self.controller.leg
         #: The height with the hips at their lower stops (the rest after power-up) [m].
@@ -233,7 +239,15 @@ class Legs:
 
     def read(self) -> LegState:
         """Update and return the legs' state from the newest replies."""
-        self.state = self.controller.state(self.replies())
+        # replies(), with the reply of a motor whose feedback is the same object as before
+        # kept as it was (the controller keeps a leg's state while its replies stay equal).
+        replies, seen = self._replies, self._feedback
+        for i, m in enumerate(self.motors.motors):
+            fb = m.feedback
+            if fb is not seen[i]:
+                seen[i] = fb
+                replies[i] = None if fb is None else fb[1:4]
+        self.state = self.controller.state(replies)
         return self.state
 
     def load(self) -> float:
@@ -242,10 +256,13 @@ class Legs:
         if st is None or not st.valid:
             return math.nan
         leg, dirs = self.controller.leg, self.controller.motors.directions
-        tau = [d * m.feedback.torque if m.feedback is not None else math.nan
-               for d, m in zip(dirs, self.motors.motors)]
-        return 0.5 * (leg.leg_force(st.q[0], st.q[1], tau[0], tau[1])[1]
-                      + leg.leg_force(st.q[2], st.q[3], tau[2], tau[3])[1])
+        tau = []
+        for d, m in zip(dirs, self.motors.motors):
+            fb = m.feedback
+            tau.append(math.nan if fb is None else d * fb.torque)
+        q = st.q
+        return 0.5 * (leg.leg_force(q[0], q[1], tau[0], tau[1])[1]
+                      + leg.leg_force(q[2], q[3], tau[2], tau[3])[1])
 
     def due(self, tick: int) -> Tuple[int, ...]:
         """
@@ -255,13 +272,15 @@ class Legs:
         legs take turns, so every tick carries the same number of frames (the right leg half a
         cycle after the left: 2 hip frames per tick at 250 Hz, not 4 and 0).
         """
-        phase = tick % self.divider
-        return tuple(leg for leg, at in self._phases if at == phase)
+        return self._due[tick % self.divider]
 
     def frames(self, commands) -> List[Frame]:
         """MIT frames of impedance commands."""
         cf = self.protocol.command_frame
-        return [cf(c.motor_id, c.position, c.velocity, c.kp, c.kd, c.torque) for c in commands]
+        out = []
+        for c in commands:   # (motor_id, position, velocity, kp, kd, torque): cf's arguments
+            out.append(cf(*c))
+        return out
 
 
 class LegTask(NoLegs):
@@ -460,7 +479,7 @@ class LegTask(NoLegs):
             return
         dl = legs.leveller.update(s.roll, gyro_x, dt) if legs.levelling else 0.0
         l_left, l_right = split_heights(l_ref, dl, self.height_min, self.height_max)
-        due = legs.due(tick)
+        due = legs._due[tick % legs.divider]   # legs.due(tick)
         if due:
             frames += legs.frames(legs.controller.commands(
                 l_left, l_right, l_dot, l_dot, pitch=theta, legs=due))

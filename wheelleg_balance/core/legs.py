@@ -55,6 +55,12 @@ def _finite(x: float) -> bool:
     return isinstance(x, (int, float)) and math.isfinite(x)
 
 
+# On the hot paths a float is tested inline, ``x - x == 0.0`` (False for inf and NaN), and any
+# other type through _finite; tuple.__new__ builds a NamedTuple without its Python __new__.
+_INF = math.inf
+_new = tuple.__new__
+
+
 # ---- height command ------------------------------------------------------------------------
 
 
@@ -90,19 +96,29 @@ class HeightShaper:
 
     def command(self, l: float) -> bool:
         """Take a new commanded height l* [m]; False if refused (not finite)."""
-        if not _finite(l):
+        if not (l - l == 0.0 if type(l) is float else _finite(l)):
             self.refused += 1
             return False
-        target = min(max(float(l), self.height_min), self.height_max)
+        target = l if type(l) is float else float(l)
+        lo, hi = self.height_min, self.height_max
+        if lo > target:   # min(max(l, lo), hi)
+            target = lo
+        if hi < target:
+            target = hi
         self.clamped = target != l
         self.target = target
         return True
 
     def step(self, dt: float) -> Tuple[float, float]:
         """Advance dt [s]; return (l_ref [m], l_dot_ref [m/s])."""
-        if not (_finite(dt) and dt > 0.0):
+        if not (0.0 < dt < _INF if type(dt) is float else _finite(dt) and dt > 0.0):
             return self.l_ref, self.l_dot_ref
         error = self.target - self.l_ref
+        if error == 0.0 and self.l_dot_ref == 0.0:
+            # At the target at rest: the step below would land on it again (its rate stays
+            # within max_accel dt of 0), so it is skipped.
+            self.l_dot_ref = 0.0
+            return self.l_ref, 0.0
         # The fastest rate from which steps of max_accel dt still stop at the target:
         # v^2 / (2 a) + v dt / 2 = |error|.
         a = self.max_accel
@@ -143,11 +159,19 @@ class RollLeveller:
 
     def update(self, roll: float, roll_rate: float, dt: float) -> float:
         """Advance dt [s] with the body roll [rad] and roll rate [rad/s]; return dl [m]."""
-        if not (_finite(roll) and _finite(roll_rate) and _finite(dt) and dt > 0.0):
+        if type(roll) is float and type(roll_rate) is float and type(dt) is float:
+            ok = roll - roll + (roll_rate - roll_rate) == 0.0 and 0.0 < dt < _INF
+        else:
+            ok = _finite(roll) and _finite(roll_rate) and _finite(dt) and dt > 0.0
+        if not ok:
             return self.dl
         integral = self.integral + roll * dt
         raw = -(self.kp * roll + self.ki * integral + self.kd * roll_rate)
-        dl = min(max(raw, -self.max_dl), self.max_dl)
+        dl, max_dl = raw, self.max_dl   # min(max(raw, -max_dl), max_dl)
+        if -max_dl > dl:
+            dl = -max_dl
+        if max_dl < dl:
+            dl = max_dl
         if dl == raw or (raw > dl) == (roll > 0.0):   # unsaturated, or unwinding
             self.integral = integral
         self.dl = dl
@@ -161,9 +185,18 @@ def split_heights(l: float, dl: float, lo: float, hi: float) -> Tuple[float, flo
     Levelling comes first: dl is limited to the range's width, then the mean l moves as far as
     needed to fit both legs (on a slope at the lowest height the body rises by |dl| / 2).
     """
-    dl = min(max(dl, lo - hi), hi - lo)
+    # min(max(x, a), b) as comparisons (called every tick)
+    a, b = lo - hi, hi - lo
+    if a > dl:
+        dl = a
+    if b < dl:
+        dl = b
     half = 0.5 * abs(dl)
-    l = min(max(l, lo + half), hi - half)
+    a, b = lo + half, hi - half
+    if a > l:
+        l = a
+    if b < l:
+        l = b
     return l + 0.5 * dl, l - 0.5 * dl
 
 
@@ -272,8 +305,8 @@ class LegController:
         self.gains = gains
         self.weight_share = float(weight_share)
         self.homed = False
-        #: Per leg: (its hips' replies, the HipMotors they were read with, _leg_state's result).
-        self._memo = {}
+        #: Per leg: (the HipMotors, its two hips' replies, _leg_state's result), left and right.
+        self._memo = [(None, None, None, None), (None, None, None, None)]
         lo, hi = self.leg.height(self.leg.q_min, self.leg.q_min), \
             self.leg.height(self.leg.q_max, self.leg.q_max)
         #: The height range [m] the legs can be commanded to (their reach, symmetric stance).
@@ -316,47 +349,59 @@ class LegController:
 
     def state(self, replies: Sequence[Reply]) -> LegState:
         """Return the LegState from the four hip replies (None for a missing one); never raises."""
-        left = self._leg_state(LEFT_LEG, replies)
-        right = self._leg_state(RIGHT_LEG, replies)
-        problems = left.problems + right.problems
-        valid = not problems
-        return LegState(left.q + right.q, left.q_dot + right.q_dot, (left.l, right.l),
-                        0.5 * (left.l + right.l) if valid else math.nan,
-                        0.5 * (left.l_dot + right.l_dot) if valid else math.nan,
-                        left.knees + right.knees, valid, problems)
-
-    def _leg_state(self, side: int, replies: Sequence[Reply]) -> _OneLeg:
-        """
-        One leg's part of the LegState from its hips' replies.
-
-        Kept while the replies and the offsets stay the same: with the legs commanded in
-        turns, one leg's hips have not replied since the previous tick.
-        """
-        pair = tuple(replies[i] if i < len(replies) else None for i in (side, side + 1))
+        n = len(replies)
+        if n >= 4:
+            r0, r1, r2, r3 = replies[0], replies[1], replies[2], replies[3]
+        else:
+            r0, r1, r2, r3 = (tuple(replies) + (None,) * 4)[:4]
+        # Each leg's part is kept while its hips' replies and the offsets stay the same: with
+        # the legs commanded in turns, one leg's hips have not replied since the previous tick.
         m = self.motors
-        memo = self._memo.get(side)
-        if memo is not None and memo[1] is m and memo[0] == pair:
-            return memo[2]
-        leg = self.leg
-        q, q_dot, problems = [], [], []
-        for k, r in enumerate(pair):
-            if r is None or not (_finite(r[0]) and _finite(r[1])):
-                q.append(math.nan)
-                q_dot.append(math.nan)
-                problems.append('no reply from hip %s' % HIP_NAMES[side + k])
-                continue
-            q.append(m.joint_angle(side + k, r[0]))
-            q_dot.append(m.directions[side + k] * r[1])
+        left, right = self._memo
+        if not (left[0] is m and (left[1] is r0 or left[1] == r0)
+                and (left[2] is r1 or left[2] == r1)):
+            left = self._memo[0] = (m, r0, r1, self._leg_state(LEFT_LEG, r0, r1))
+        if not (right[0] is m and (right[1] is r2 or right[1] == r2)
+                and (right[2] is r3 or right[2] == r3)):
+            right = self._memo[1] = (m, r2, r3, self._leg_state(RIGHT_LEG, r2, r3))
+        left, right = left[3], right[3]
+        problems = left[5] + right[5]
+        valid = not problems
+        return _new(LegState, (left[0] + right[0], left[1] + right[1], (left[2], right[2]),
+                               0.5 * (left[2] + right[2]) if valid else math.nan,
+                               0.5 * (left[3] + right[3]) if valid else math.nan,
+                               left[4] + right[4], valid, problems))
+
+    def _leg_state(self, side: int, r_front: Reply, r_rear: Reply) -> _OneLeg:
+        """One leg's part of the LegState from its hips' replies."""
+        m = self.motors
+        nan = math.nan
+        problems = ()
+        q, q_dot = [nan, nan], [nan, nan]
+        for k, r in ((0, r_front), (1, r_rear)):
+            if r is not None:
+                p, v = r[0], r[1]
+                if type(p) is float and type(v) is float:
+                    ok = p - p + (v - v) == 0.0
+                else:
+                    ok = _finite(p) and _finite(v)
+                if ok:
+                    d = m.directions[side + k]
+                    q[k] = d * p + m.offsets[side + k]   # HipMotors.joint_angle
+                    q_dot[k] = d * v
+                    continue
+            problems += ('no reply from hip %s' % HIP_NAMES[side + k],)
         qf, qr = q
-        measured = qf == qf and qr == qr
-        l = leg.height(qf, qr) if measured else math.nan
-        if l != l and measured:
-            problems.append('%s leg out of reach (q = %.3f, %.3f rad)'
-                            % ('left' if side == LEFT_LEG else 'right', qf, qr))
-        out = _OneLeg(tuple(q), tuple(q_dot), l, leg.height_rate(qf, qr, q_dot[0], q_dot[1]),
-                      tuple(leg.knee_angles(qf, qr)), tuple(problems))
-        self._memo[side] = (pair, m, out)
-        return out
+        if qf == qf and qr == qr:
+            _, j, l, knees = self.leg.measure(qf, qr)
+            if l != l:
+                problems += ('%s leg out of reach (q = %.3f, %.3f rad)'
+                             % ('left' if side == LEFT_LEG else 'right', qf, qr),)
+            l_dot = nan if j is None else j[1][0] * q_dot[0] + j[1][1] * q_dot[1]
+        else:
+            l = l_dot = nan
+            knees = (nan, nan)
+        return _new(_OneLeg, ((qf, qr), (q_dot[0], q_dot[1]), l, l_dot, knees, problems))
 
     # ---- commands ---------------------------------------------------------------------------
 
@@ -374,25 +419,38 @@ class LegController:
         """
         g, m = self.gains, self.motors
         f = self.weight_share * load
-        theta = pitch if _finite(pitch) else 0.0
-        f_l, f_x = f * math.cos(theta), f * math.sin(theta)
+        if not (pitch - pitch == 0.0 if type(pitch) is float else _finite(pitch)):
+            pitch = 0.0
+        f_l, f_x = f * math.cos(pitch), f * math.sin(pitch)
+        lo, hi = self.reach
         out: List[MitCommand] = []
         for side in legs:
             l, l_dot = (l_left, l_dot_left) if side == LEFT_LEG else (l_right, l_dot_right)
-            if not (_finite(l) and _finite(l_dot)):
+            if type(l) is float and type(l_dot) is float:
+                ok = l - l + (l_dot - l_dot) == 0.0
+            else:
+                ok = _finite(l) and _finite(l_dot)
+            if not ok:
                 out.extend(self._damping(side))
                 continue
-            l = min(max(l, self.reach[0]), self.reach[1])
-            q = self.leg.inverse(l)
-            rates = self.leg.hip_rates(q[0], q[1], l_dot)
-            tau = self.leg.static_torques(q[0], q[1], f_l, f_x)
-            if not all(_finite(v) for v in q + rates + tau):
+            if lo > l:   # min(max(l, lo), hi)
+                l = lo
+            if hi < l:
+                l = hi
+            qf, qr, rf, rr, tf, tr = v = self.leg.hip_command(l, l_dot, f_l, f_x)
+            # A finite float sum means six finite floats; otherwise each is checked.
+            total = qf + qr + rf + rr + tf + tr
+            if not (type(total) is float and total - total == 0.0) \
+                    and not all(_finite(x) for x in v):
                 out.extend(self._damping(side))
                 continue
-            for k in (0, 1):
-                i, d = side + k, m.directions[side + k]
-                out.append(MitCommand(m.motor_ids[i], m.motor_position(i, q[k]), d * rates[k],
-                                      g.kp, g.kd, d * tau[k]))
+            ids, dirs, offsets = m.motor_ids, m.directions, m.offsets
+            d = dirs[side]   # q -> motor frame: HipMotors.motor_position, directions
+            out.append(_new(MitCommand, (ids[side], d * (qf - offsets[side]), d * rf, g.kp,
+                                         g.kd, d * tf)))
+            d = dirs[side + 1]
+            out.append(_new(MitCommand, (ids[side + 1], d * (qr - offsets[side + 1]), d * rr,
+                                         g.kp, g.kd, d * tr)))
         return out
 
     def damping_commands(self, state: Optional[LegState] = None,
