@@ -152,6 +152,15 @@ class DisturbanceObserver:
     def update(self, theta_meas: float, x_meas: float, u_applied: float,
                l: float) -> np.ndarray:
         """Run one tick (predict with u_applied, correct with [theta_meas, x_meas])."""
+        return np.array(self.update_floats(theta_meas, x_meas, u_applied, l))
+
+    def update_floats(self, theta_meas: float, x_meas: float, u_applied: float,
+                      l: float) -> list:
+        """
+        ``update`` returning the estimate as a list of five floats (the tick's path).
+
+        The list is the observer's own state until the next tick: read it, do not change it.
+        """
         if l != self._l:
             r = self._interp(l)
             self._cur = [tuple(row) for row in r[:, :8].tolist()]
@@ -161,13 +170,26 @@ class DisturbanceObserver:
         u = u_applied if math.isfinite(u_applied) else 0.0
         y0, y1 = theta_meas, x_meas
         if math.isfinite(y0) and math.isfinite(y1):
-            z = [f0 * z0 + f1 * z1 + f2 * z2 + f3 * z3 + f4 * z4 + g * u + l0 * y0 + l1 * y1
-                 for f0, f1, f2, f3, f4, g, l0, l1 in self._cur]
+            # zeta_k = F zeta_{k-1} + G u + L y, row by row (unrolled: this runs every tick)
+            c0, c1, c2, c3, c4 = self._cur
+            f0, f1, f2, f3, f4, g, l0, l1 = c0
+            n0 = f0 * z0 + f1 * z1 + f2 * z2 + f3 * z3 + f4 * z4 + g * u + l0 * y0 + l1 * y1
+            f0, f1, f2, f3, f4, g, l0, l1 = c1
+            n1 = f0 * z0 + f1 * z1 + f2 * z2 + f3 * z3 + f4 * z4 + g * u + l0 * y0 + l1 * y1
+            f0, f1, f2, f3, f4, g, l0, l1 = c2
+            n2 = f0 * z0 + f1 * z1 + f2 * z2 + f3 * z3 + f4 * z4 + g * u + l0 * y0 + l1 * y1
+            f0, f1, f2, f3, f4, g, l0, l1 = c3
+            n3 = f0 * z0 + f1 * z1 + f2 * z2 + f3 * z3 + f4 * z4 + g * u + l0 * y0 + l1 * y1
             if abs(y0 - z4) > self.d_hold_angle:
-                z[4] = z4  # outside the linear region: hold d_hat
+                n4 = z4  # outside the linear region: hold d_hat
+            else:
+                f0, f1, f2, f3, f4, g, l0, l1 = c4
+                n4 = f0 * z0 + f1 * z1 + f2 * z2 + f3 * z3 + f4 * z4 + g * u + l0 * y0 \
+                    + l1 * y1
+            z = [n0, n1, n2, n3, n4]
         else:
             # A lost measurement must not poison the estimate: predict only this tick.
             z = [a0 * z0 + a1 * z1 + a2 * z2 + a3 * z3 + a4 * z4 + b * u
                  for a0, a1, a2, a3, a4, b in self._pred]
         self._z = z
-        return np.array(z)
+        return z
