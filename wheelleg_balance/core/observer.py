@@ -123,10 +123,12 @@ class DisturbanceObserver:
         rows = table_cache.table('observer_rows', inputs,
                                  lambda: observer_rows(p, dt, self.poles, self._h))
         self._rows = list(rows)
+        # rows[i + 1] - rows[i], for _interp (the same numbers as computed there)
+        self._steps = [b - a for a, b in zip(self._rows, self._rows[1:])]
         self.gains = [r[:, 6:8] for r in self._rows]  # L (5x2) per grid height
         self._l = None
-        self._cur = None   # rows (F, G, L) at self._l
-        self._pred = None  # rows (Ad, Bd) at self._l
+        self._cur = None   # rows (F, G, L) at self._l, lists of floats
+        self._pred = None  # rows [F | G | L | Ad | Bd] at self._l (the predictor's: Ad, Bd)
         self._z = [0.0] * 5
 
     def matrices(self, l: float) -> tuple:
@@ -138,7 +140,7 @@ class DisturbanceObserver:
         i, t = bracket(self._h, l)
         if t == 0.0:
             return self._rows[i]
-        return self._rows[i] + t * (self._rows[i + 1] - self._rows[i])
+        return self._rows[i] + t * self._steps[i]
 
     def reset(self, xi_hat0) -> None:
         """Set the estimate [theta~_hat, theta_dot_hat, x_hat, x_dot_hat, d_hat]."""
@@ -163,8 +165,8 @@ class DisturbanceObserver:
         """
         if l != self._l:
             r = self._interp(l)
-            self._cur = [tuple(row) for row in r[:, :8].tolist()]
-            self._pred = [tuple(row) for row in r[:, 8:].tolist()]
+            self._cur = r[:, :8].tolist()
+            self._pred = r   # its rows (Ad, Bd) are taken when a measurement is lost
             self._l = l
         z0, z1, z2, z3, z4 = self._z
         u = u_applied if math.isfinite(u_applied) else 0.0
@@ -190,6 +192,6 @@ class DisturbanceObserver:
         else:
             # A lost measurement must not poison the estimate: predict only this tick.
             z = [a0 * z0 + a1 * z1 + a2 * z2 + a3 * z3 + a4 * z4 + b * u
-                 for a0, a1, a2, a3, a4, b in self._pred]
+                 for a0, a1, a2, a3, a4, b in self._pred[:, 8:].tolist()]
         self._z = z
         return z

@@ -355,10 +355,19 @@ class OutputRegulationController:
             z0, z1, z2, z3 = theta, theta_dot, x, x_dot
         p0, p1, p2, p3 = self._pi
         x = z2 - p2 * d_hat
+        # ref.error(x, x_dot_ref) inline (_PositionReference: x_ref moving at x_dot*, within
+        # max_error of x); while moving, x_ref = x: track the speed, hold where the command ends
         ref = self._ref
-        if x_dot_ref != 0.0:
-            ref.x_ref = x   # moving: track the speed, hold where the command ends
-        e_x = ref.error(x, x_dot_ref)
+        x_ref = x if x_dot_ref != 0.0 else ref.x_ref
+        e_x = x - x_ref
+        max_error = ref.max_error
+        if e_x > max_error:
+            x_ref = x - max_error
+            e_x = max_error
+        elif e_x < -max_error:
+            x_ref = x + max_error
+            e_x = -max_error
+        ref.x_ref = x_ref + x_dot_ref * ref.dt
         e_v = z3 - p3 * d_hat - x_dot_ref
         outer = k2 * e_x + k3 * e_v
         limit = self._outer_limit(k0, x_dot_ref, e_v)

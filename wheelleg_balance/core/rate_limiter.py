@@ -61,6 +61,23 @@ class RateLimiter:
         # min(a, b) is written b if b < a else a, max(a, b) b if b > a else a: the same result
         # (NaN included) without the builtins' calls, on the tick's path.
         max_accel, max_jerk = self.max_accel, self.max_jerk
+        if max_jerk <= 0.0 and max_accel > 0.0 and dt > 0.0:
+            # The ramp (the reference shaper's): the general steps below, shortened.
+            error = target - self.value
+            abs_error = abs(error)
+            a_lim = abs_error / dt
+            a_lim = a_lim if a_lim < max_accel else max_accel
+            accel = math.copysign(a_lim, error)
+            if a_lim * dt >= abs_error:  # lands on the target exactly
+                v = -bound if -bound > target else target
+                v = bound if bound < v else v
+                self.value, self.accel = v, accel
+                return v
+            self.accel = accel
+            value = self.value = self.value + accel * dt
+            if abs(value) > bound:
+                self.value, self.accel = math.copysign(bound, value), 0.0
+            return self.value
         if max_accel <= 0.0 and max_jerk <= 0.0:
             v = -bound if -bound > target else target
             self.value, self.accel = bound if bound < v else v, 0.0
