@@ -274,45 +274,6 @@ class OutputRegulationController:
             lean = sh.max_lean_rest
         return lean if lean > 0.0 else math.inf
 
-    def _outer_limit(self, k0: float, x_dot_ref: float, speed_error: float) -> float:
-        """Return the largest |position + speed term| [N]: the force of the lean limit."""
-        # _lean_target and _roll_extra's reset, inline (once per tick); min and max written
-        # as comparisons that return what they return
-        sh = self.shape
-        speed = abs(speed_error)
-        if x_dot_ref != 0.0:
-            lean = sh.max_lean_move
-        elif speed > ROLLING_SPEED:
-            lean = sh.max_lean_hold
-        else:
-            lean = sh.max_lean_rest
-        target = lean if lean > 0.0 else math.inf
-        if not math.isinf(target):
-            if x_dot_ref != 0.0 or speed <= ROLLING_SPEED:
-                self._roll_v0 = self._roll_t = self._roll_s = self._extra = 0.0
-                extra = 0.0
-            else:
-                extra = self._roll_extra(x_dot_ref, speed, target)
-            # min(target + extra, max(max_lean_move, target))
-            move = sh.max_lean_move
-            cap = target if target > move else move
-            target += extra
-            if cap < target:
-                target = cap
-        held = self._lean
-        if math.isinf(target) or math.isinf(held):
-            held = self._lean = target
-        else:   # slew, so that a change of limit does not step u
-            step = sh.lean_limit_rate * self._ref.dt
-            d = target - held
-            d = d if d < step else step
-            held = self._lean = held + (d if d > -step else -step)
-        if math.isinf(held):
-            return math.inf
-        # Linearized, u = k0 theta + outer holds a steady lean theta = -outer / (k0 - (M+m) g).
-        gap = k0 - self._weight
-        return (0.0 if 0.0 > gap else gap) * math.tan(1.5 if 1.5 < held else held)
-
     def _roll_extra(self, x_dot_ref: float, speed: float, lean: float) -> float:
         """
         Return the extra lean [rad] the hold allows a rolling robot, beyond ``lean``.
@@ -375,6 +336,45 @@ class OutputRegulationController:
         outer = outer if outer < limit else limit
         outer = outer if outer > -limit else -limit
         return k0 * (z0 - p0 * d_hat) + k1 * (z1 - p1 * d_hat) + outer + self._gamma * d_hat
+
+    def _outer_limit(self, k0: float, x_dot_ref: float, speed_error: float) -> float:
+        """Return the largest |position + speed term| [N]: the force of the lean limit."""
+        # _lean_target and _roll_extra's reset inline (every tick); min(a, b) is written
+        # b if b < a else a, max(a, b) b if b > a else a (the same, NaN included)
+        sh = self.shape
+        speed = abs(speed_error)
+        if x_dot_ref != 0.0:
+            lean = sh.max_lean_move
+        elif speed > ROLLING_SPEED:
+            lean = sh.max_lean_hold
+        else:
+            lean = sh.max_lean_rest
+        if 0.0 < lean < math.inf:
+            target = lean
+            if x_dot_ref != 0.0 or speed <= ROLLING_SPEED:
+                # _roll_extra's reset: no extra lean (target + 0.0 is target, within its cap)
+                self._roll_v0 = self._roll_t = self._roll_s = self._extra = 0.0
+            else:   # min(target + extra, max(max_lean_move, target))
+                move = sh.max_lean_move
+                cap = target if target > move else move
+                target += self._roll_extra(x_dot_ref, speed, target)
+                if cap < target:
+                    target = cap
+        else:
+            target = math.inf   # no limit
+        held = self._lean
+        if math.isinf(target) or math.isinf(held):
+            held = self._lean = target
+        else:   # slew, so that a change of limit does not step u
+            step = sh.lean_limit_rate * self._ref.dt
+            d = target - held
+            d = d if d < step else step
+            held = self._lean = held + (d if d > -step else -step)
+        if math.isinf(held):
+            return math.inf
+        # Linearized, u = k0 theta + outer holds a steady lean theta = -outer / (k0 - (M+m) g).
+        gap = k0 - self._weight
+        return (0.0 if 0.0 > gap else gap) * math.tan(1.5 if 1.5 < held else held)
 
 
 class LqrController:
