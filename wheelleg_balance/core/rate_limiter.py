@@ -64,6 +64,11 @@ class RateLimiter:
         if max_jerk <= 0.0 and max_accel > 0.0 and dt > 0.0:
             # The ramp (the reference shaper's): the general steps below, shortened.
             error = target - self.value
+            if error == 0.0:   # held at the target: a_lim = 0, which lands on it
+                v = -bound if -bound > target else target
+                v = bound if bound < v else v
+                self.value, self.accel = v, math.copysign(0.0, error)
+                return v
             abs_error = abs(error)
             a_lim = abs_error / dt
             a_lim = a_lim if a_lim < max_accel else max_accel
