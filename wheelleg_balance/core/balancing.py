@@ -15,8 +15,7 @@ import numpy as np
 
 from .config import BalanceConfig
 from .estimation import WheelOdometry
-from .pipeline import BalanceCore, CONTROLLER_NAMES, CoreConfig, Measurement, Reference, \
-    TickOutput
+from .pipeline import BalanceCore, CONTROLLER_NAMES, CoreConfig, Measurement, TickValues
 from .reference import ReferenceShaper
 from .safety import SensorSnapshot
 from .tick_io import CmdVel, LoopState
@@ -123,7 +122,8 @@ class Balancing:
         x_dot = self.core.odometry.x_dot
         if math.isfinite(x_dot) and dt > 0.0:
             a = (x_dot - self._x_dot_prev) / dt
-            self.accel += min(1.0, dt / 0.05) * (a - self.accel)
+            gain = dt / 0.05
+            self.accel += (1.0 if 1.0 < gain else gain) * (a - self.accel)   # min(1, gain)
             self._x_dot_prev = x_dot
         if not math.isfinite(self.accel):
             self.accel = 0.0
@@ -136,18 +136,21 @@ class Balancing:
         self._risen_since = None
 
     def step(self, now: float, s: SensorSnapshot, dt: float, yaw_rate: float,
-             sitting: bool) -> Tuple[TickOutput, float, float]:
+             sitting: bool) -> Tuple[TickValues, float, float]:
         """
         Run the controller; return its output and the shaped x_dot* [m/s], yaw rate* [rad/s].
 
-        sitting: the sit-down runs (the references go to zero).
+        sitting: the sit-down runs (the references go to zero). The output has TickOutput's
+        fields; it is BalanceCore's one TickValues, rewritten by the next tick.
         """
         cmd = self._cmd
         if cmd is None or sitting:
             x_ref, w_ref = self.shaper.update(now, None, 0.0, 0.0, dt)
         else:
             x_ref, w_ref = self.shaper.update(now, cmd.t, cmd.x_dot, cmd.yaw_rate, dt)
-        out = self.core.step(_measurement(s, yaw_rate), Reference(x_ref, w_ref), dt)
+        # BalanceCore.step's fields passed as they are (no Measurement, Reference, TickOutput)
+        out = self.core.advance(s.theta, s.theta_dot, s.wheel_vel_left, s.wheel_vel_right, s.l,
+                                yaw_rate, x_ref, w_ref, dt)
         self.x, self.d_hat = out.x, out.d_hat
         return out, x_ref, w_ref
 

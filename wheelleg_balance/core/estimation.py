@@ -52,11 +52,6 @@ def pitch_rate_from_gyro(angular_velocity_y: float) -> float:
     return float(angular_velocity_y)
 
 
-def _wrap_angle(a: float) -> float:
-    """Wrap an angle [rad] into [-pi, pi)."""
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
-
-
 class WheelOdometry:
     """
     Wheel odometry of Sec. V-A with the pitch-rate correction, plus planar dead reckoning.
@@ -102,18 +97,20 @@ class WheelOdometry:
         theta_dot: pitch rate [rad/s]; dt: time since the previous tick [s] (a non-positive or
         non-finite dt integrates nothing). Returns (x [m], x_dot [m/s], yaw_rate [rad/s]).
         """
-        if dt > 0.0 and math.isfinite(dt):
+        if 0.0 < dt < math.inf:   # NaN fails the comparison
             ds = dt * self._x_dot_prev
+            yaw = self._yaw
             dyaw = dt * self._yaw_rate_prev
-            heading = self._yaw + 0.5 * dyaw
+            heading = yaw + 0.5 * dyaw
             self._x += ds
             self._x_world += ds * math.cos(heading)
             self._y_world += ds * math.sin(heading)
-            self._yaw = _wrap_angle(self._yaw + dyaw)
-        r_w = self.p.wheel_radius
+            self._yaw = (yaw + dyaw + math.pi) % (2.0 * math.pi) - math.pi   # into [-pi, pi)
+        p = self.p
+        r_w = p.wheel_radius
         w_mean = 0.5 * (w_left + w_right)
         x_dot = r_w * (w_mean + theta_dot) if self.pitch_correction else r_w * w_mean
-        yaw_rate = r_w * (w_right - w_left) / self.p.wheel_separation
+        yaw_rate = r_w * (w_right - w_left) / p.wheel_separation
         self.x_dot = x_dot
         self.yaw_rate = yaw_rate
         self._x_dot_prev = x_dot if math.isfinite(x_dot) else 0.0

@@ -244,10 +244,17 @@ class IdaPbcController:
 
     def compute(self, s: ControlInput) -> float:
         """Return the force u [N] on the cart for this tick (0.0 on non-finite input)."""
-        theta = s.theta - s.d_hat if self.compensate_offset else s.theta
-        nu = ida_pbc_velocity(theta, s.theta_dot, s.x_dot - s.x_dot_ref, s.l, self.gains,
+        return self.compute_floats(s.theta, s.theta_dot, s.x, s.x_dot, s.l, s.x_dot_ref,
+                                   s.xi_hat.tolist())
+
+    def compute_floats(self, theta: float, theta_dot: float, x: float, x_dot: float, l: float,
+                       x_dot_ref: float, xi_hat) -> float:
+        """``compute`` on ControlInput's fields (xi_hat: five floats), the tick's path."""
+        if self.compensate_offset:
+            theta = theta - xi_hat[4]
+        nu = ida_pbc_velocity(theta, theta_dot, x_dot - x_dot_ref, l, self.gains,
                               self.p.gravity)
-        u = pfl_force(clamp_theta(theta), s.theta_dot, nu, s.l, self.p)
+        u = pfl_force(clamp_theta(theta), theta_dot, nu, l, self.p)
         return u if math.isfinite(u) else 0.0
 
     def reset(self, s: ControlInput) -> None:

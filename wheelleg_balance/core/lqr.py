@@ -146,15 +146,22 @@ class GainSchedule:
                                        lambda: [lqr_gain(h, p, self.Q, self.R) for h in heights])
         self._h = [float(h) for h in heights]
         self._k = [tuple(float(v) for v in k) for k in self.gains]
+        self._last = (None, None)   # (l, k_x(l)) of the last call: l changes on few ticks
 
     def gain_floats(self, l: float) -> tuple:
         """Return k_x(l) as a tuple of four floats (per-tick form of ``gain``)."""
+        last_l, k = self._last
+        if l == last_l:
+            return k
         i, t = bracket(self._h, l)
         if t == 0.0:
-            return self._k[i]
-        a, b = self._k[i], self._k[i + 1]
-        return (a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1]),
-                a[2] + t * (b[2] - a[2]), a[3] + t * (b[3] - a[3]))
+            k = self._k[i]
+        else:
+            a, b = self._k[i], self._k[i + 1]
+            k = (a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1]),
+                 a[2] + t * (b[2] - a[2]), a[3] + t * (b[3] - a[3]))
+        self._last = (l, k)
+        return k
 
     def gain(self, l: float) -> np.ndarray:
         """Return k_x(l) (shape (4,), u = k_x @ xi) interpolated at height l [m]."""

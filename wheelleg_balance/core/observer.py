@@ -123,10 +123,12 @@ class DisturbanceObserver:
         rows = table_cache.table('observer_rows', inputs,
                                  lambda: observer_rows(p, dt, self.poles, self._h))
         self._rows = list(rows)
+        # rows[i + 1] - rows[i], for _interp (the same numbers as computed there)
+        self._steps = [b - a for a, b in zip(self._rows, self._rows[1:])]
         self.gains = [r[:, 6:8] for r in self._rows]  # L (5x2) per grid height
         self._l = None
-        self._cur = None   # rows (F, G, L) at self._l
-        self._pred = None  # rows (Ad, Bd) at self._l
+        self._cur = None   # rows (F, G, L) at self._l, lists of floats
+        self._pred = None  # rows [F | G | L | Ad | Bd] at self._l (the predictor's: Ad, Bd)
         self._z = [0.0] * 5
 
     def matrices(self, l: float) -> tuple:
@@ -138,7 +140,7 @@ class DisturbanceObserver:
         i, t = bracket(self._h, l)
         if t == 0.0:
             return self._rows[i]
-        return self._rows[i] + t * (self._rows[i + 1] - self._rows[i])
+        return self._rows[i] + t * self._steps[i]
 
     def reset(self, xi_hat0) -> None:
         """Set the estimate [theta~_hat, theta_dot_hat, x_hat, x_dot_hat, d_hat]."""
@@ -152,22 +154,44 @@ class DisturbanceObserver:
     def update(self, theta_meas: float, x_meas: float, u_applied: float,
                l: float) -> np.ndarray:
         """Run one tick (predict with u_applied, correct with [theta_meas, x_meas])."""
+        return np.array(self.update_floats(theta_meas, x_meas, u_applied, l))
+
+    def update_floats(self, theta_meas: float, x_meas: float, u_applied: float,
+                      l: float) -> list:
+        """
+        ``update`` returning the estimate as a list of five floats (the tick's path).
+
+        The list is the observer's own state until the next tick: read it, do not change it.
+        """
         if l != self._l:
             r = self._interp(l)
-            self._cur = [tuple(row) for row in r[:, :8].tolist()]
-            self._pred = [tuple(row) for row in r[:, 8:].tolist()]
+            self._cur = r[:, :8].tolist()
+            self._pred = r   # its rows (Ad, Bd) are taken when a measurement is lost
             self._l = l
         z0, z1, z2, z3, z4 = self._z
         u = u_applied if math.isfinite(u_applied) else 0.0
         y0, y1 = theta_meas, x_meas
         if math.isfinite(y0) and math.isfinite(y1):
-            z = [f0 * z0 + f1 * z1 + f2 * z2 + f3 * z3 + f4 * z4 + g * u + l0 * y0 + l1 * y1
-                 for f0, f1, f2, f3, f4, g, l0, l1 in self._cur]
+            # zeta_k = F zeta_{k-1} + G u + L y, row by row (unrolled: this runs every tick)
+            c0, c1, c2, c3, c4 = self._cur
+            f0, f1, f2, f3, f4, g, l0, l1 = c0
+            n0 = f0 * z0 + f1 * z1 + f2 * z2 + f3 * z3 + f4 * z4 + g * u + l0 * y0 + l1 * y1
+            f0, f1, f2, f3, f4, g, l0, l1 = c1
+            n1 = f0 * z0 + f1 * z1 + f2 * z2 + f3 * z3 + f4 * z4 + g * u + l0 * y0 + l1 * y1
+            f0, f1, f2, f3, f4, g, l0, l1 = c2
+            n2 = f0 * z0 + f1 * z1 + f2 * z2 + f3 * z3 + f4 * z4 + g * u + l0 * y0 + l1 * y1
+            f0, f1, f2, f3, f4, g, l0, l1 = c3
+            n3 = f0 * z0 + f1 * z1 + f2 * z2 + f3 * z3 + f4 * z4 + g * u + l0 * y0 + l1 * y1
             if abs(y0 - z4) > self.d_hold_angle:
-                z[4] = z4  # outside the linear region: hold d_hat
+                n4 = z4  # outside the linear region: hold d_hat
+            else:
+                f0, f1, f2, f3, f4, g, l0, l1 = c4
+                n4 = f0 * z0 + f1 * z1 + f2 * z2 + f3 * z3 + f4 * z4 + g * u + l0 * y0 \
+                    + l1 * y1
+            z = [n0, n1, n2, n3, n4]
         else:
             # A lost measurement must not poison the estimate: predict only this tick.
             z = [a0 * z0 + a1 * z1 + a2 * z2 + a3 * z3 + a4 * z4 + b * u
-                 for a0, a1, a2, a3, a4, b in self._pred]
+                 for a0, a1, a2, a3, a4, b in self._pred[:, 8:].tolist()]
         self._z = z
-        return np.array(z)
+        return z

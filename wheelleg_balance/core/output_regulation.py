@@ -274,22 +274,6 @@ class OutputRegulationController:
             lean = sh.max_lean_rest
         return lean if lean > 0.0 else math.inf
 
-    def _outer_limit(self, k0: float, x_dot_ref: float, speed_error: float) -> float:
-        """Return the largest |position + speed term| [N]: the force of the lean limit."""
-        target = self._lean_target(x_dot_ref, speed_error)
-        if not math.isinf(target):
-            target = min(target + self._roll_extra(x_dot_ref, abs(speed_error), target),
-                         max(self.shape.max_lean_move, target))
-        if math.isinf(target) or math.isinf(self._lean):
-            self._lean = target
-        else:   # slew, so that a change of limit does not step u
-            step = self.shape.lean_limit_rate * self._ref.dt
-            self._lean += max(-step, min(step, target - self._lean))
-        if math.isinf(self._lean):
-            return math.inf
-        # Linearized, u = k0 theta + outer holds a steady lean theta = -outer / (k0 - (M+m) g).
-        return max(k0 - self._weight, 0.0) * math.tan(min(self._lean, 1.5))
-
     def _roll_extra(self, x_dot_ref: float, speed: float, lean: float) -> float:
         """
         Return the extra lean [rad] the hold allows a rolling robot, beyond ``lean``.
@@ -320,20 +304,77 @@ class OutputRegulationController:
 
     def compute(self, s: ControlInput) -> float:
         """Return the force u [N]."""
-        k0, k1, k2, k3 = self.schedule.gain_floats(s.l)
-        z0, z1, z2, z3, d_hat = s.xi_hat.tolist()
+        return self.compute_floats(s.theta, s.theta_dot, s.x, s.x_dot, s.l, s.x_dot_ref,
+                                   s.xi_hat.tolist())
+
+    def compute_floats(self, theta: float, theta_dot: float, x: float, x_dot: float, l: float,
+                       x_dot_ref: float, xi_hat) -> float:
+        """``compute`` on ControlInput's fields (xi_hat: five floats), the tick's path."""
+        k0, k1, k2, k3 = self.schedule.gain_floats(l)
+        z0, z1, z2, z3, d_hat = xi_hat
         if self.shape.feedback == 'measured':
-            z0, z1, z2, z3 = s.theta, s.theta_dot, s.x, s.x_dot
+            z0, z1, z2, z3 = theta, theta_dot, x, x_dot
         p0, p1, p2, p3 = self._pi
         x = z2 - p2 * d_hat
-        if s.x_dot_ref != 0.0:
-            self._ref.x_ref = x   # moving: track the speed, hold where the command ends
-        e_x = self._ref.error(x, s.x_dot_ref)
-        e_v = z3 - p3 * d_hat - s.x_dot_ref
+        # ref.error(x, x_dot_ref) inline (_PositionReference: x_ref moving at x_dot*, within
+        # max_error of x); while moving, x_ref = x: track the speed, hold where the command ends
+        ref = self._ref
+        x_ref = x if x_dot_ref != 0.0 else ref.x_ref
+        e_x = x - x_ref
+        max_error = ref.max_error
+        if e_x > max_error:
+            x_ref = x - max_error
+            e_x = max_error
+        elif e_x < -max_error:
+            x_ref = x + max_error
+            e_x = -max_error
+        ref.x_ref = x_ref + x_dot_ref * ref.dt
+        e_v = z3 - p3 * d_hat - x_dot_ref
         outer = k2 * e_x + k3 * e_v
-        limit = self._outer_limit(k0, s.x_dot_ref, e_v)
-        outer = max(-limit, min(limit, outer))
+        limit = self._outer_limit(k0, x_dot_ref, e_v)
+        # max(-limit, min(limit, outer)), as comparisons (a NaN outer gives +limit, as there)
+        outer = outer if outer < limit else limit
+        outer = outer if outer > -limit else -limit
         return k0 * (z0 - p0 * d_hat) + k1 * (z1 - p1 * d_hat) + outer + self._gamma * d_hat
+
+    def _outer_limit(self, k0: float, x_dot_ref: float, speed_error: float) -> float:
+        """Return the largest |position + speed term| [N]: the force of the lean limit."""
+        # _lean_target and _roll_extra's reset inline (every tick); min(a, b) is written
+        # b if b < a else a, max(a, b) b if b > a else a (the same, NaN included)
+        sh = self.shape
+        speed = abs(speed_error)
+        if x_dot_ref != 0.0:
+            lean = sh.max_lean_move
+        elif speed > ROLLING_SPEED:
+            lean = sh.max_lean_hold
+        else:
+            lean = sh.max_lean_rest
+        if 0.0 < lean < math.inf:
+            target = lean
+            if x_dot_ref != 0.0 or speed <= ROLLING_SPEED:
+                # _roll_extra's reset: no extra lean (target + 0.0 is target, within its cap)
+                self._roll_v0 = self._roll_t = self._roll_s = self._extra = 0.0
+            else:   # min(target + extra, max(max_lean_move, target))
+                move = sh.max_lean_move
+                cap = target if target > move else move
+                target += self._roll_extra(x_dot_ref, speed, target)
+                if cap < target:
+                    target = cap
+        else:
+            target = math.inf   # no limit
+        held = self._lean
+        if math.isinf(target) or math.isinf(held):
+            held = self._lean = target
+        else:   # slew, so that a change of limit does not step u
+            step = sh.lean_limit_rate * self._ref.dt
+            d = target - held
+            d = d if d < step else step
+            held = self._lean = held + (d if d > -step else -step)
+        if math.isinf(held):
+            return math.inf
+        # Linearized, u = k0 theta + outer holds a steady lean theta = -outer / (k0 - (M+m) g).
+        gap = k0 - self._weight
+        return (0.0 if 0.0 > gap else gap) * math.tan(1.5 if 1.5 < held else held)
 
 
 class LqrController:
@@ -360,6 +401,11 @@ class LqrController:
 
     def compute(self, s: ControlInput) -> float:
         """Return the force u [N]."""
-        k0, k1, k2, k3 = self.schedule.gain_floats(s.l)
-        e_x = self._ref.error(s.x, s.x_dot_ref)
-        return k0 * s.theta + k1 * s.theta_dot + k2 * e_x + k3 * (s.x_dot - s.x_dot_ref)
+        return self.compute_floats(s.theta, s.theta_dot, s.x, s.x_dot, s.l, s.x_dot_ref, None)
+
+    def compute_floats(self, theta: float, theta_dot: float, x: float, x_dot: float, l: float,
+                       x_dot_ref: float, xi_hat) -> float:
+        """``compute`` on ControlInput's fields, the tick's path (xi_hat is not used)."""
+        k0, k1, k2, k3 = self.schedule.gain_floats(l)
+        e_x = self._ref.error(x, x_dot_ref)
+        return k0 * theta + k1 * theta_dot + k2 * e_x + k3 * (x_dot - x_dot_ref)

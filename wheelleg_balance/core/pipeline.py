@@ -17,7 +17,7 @@ Per tick (2 ms):
 4. u becomes two wheel torques with the yaw-rate loop, saturated so balance comes before yaw
    (core/actuation.py). The force actually applied feeds the observer at the next tick.
 """
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 import math
 from typing import Optional
 
@@ -136,6 +136,22 @@ class TickOutput:
     saturated: bool
 
 
+class TickValues:
+    """
+    TickOutput's fields in one mutable object that ``BalanceCore.advance`` rewrites every tick.
+
+    The tick's path reads its output here instead of building a TickOutput per tick; keep a
+    value, not the object, across ticks.
+    """
+
+    __slots__ = tuple(f.name for f in fields(TickOutput))
+
+    def __init__(self):
+        for name in self.__slots__:
+            setattr(self, name, 0.0)
+        self.controller, self.saturated = '', False
+
+
 class BalanceCore:
     """The control tick shared by balance_node, the simulation and the benchmark."""
 
@@ -176,6 +192,7 @@ class BalanceCore:
         self._u_cmd = 0.0
         self._blend_offset = 0.0
         self._blend_step = 0.0
+        self.out = TickValues()   # the newest tick's output (advance)
 
     @property
     def active_controller(self) -> str:
@@ -238,7 +255,8 @@ class BalanceCore:
         if self._auto is not None:
             self._auto.reset()
             self._active = self._auto.choice
-        s = self._fill_input(meas, Reference(), 0.0, 0.0, self.observer.xi_hat)
+        s = self._control_input(meas.theta_meas, meas.theta_dot, 0.0, 0.0,
+                                self._height(meas.l), 0.0, self.observer.xi_hat)
         for controller in self.controllers.values():
             controller.reset(s)
 
@@ -257,60 +275,88 @@ class BalanceCore:
             self._l = self.p.clamp_height(l)
         return self._l
 
-    def _fill_input(self, meas, ref, x, x_dot, xi_hat) -> ControlInput:
+    def _control_input(self, theta_meas, theta_dot, x, x_dot, l, x_dot_ref, z) -> ControlInput:
+        """Fill the ControlInput (switches, and controllers without ``compute_floats``)."""
         s = self._input
-        s.theta = meas.theta_meas
-        s.theta_dot = meas.theta_dot
-        s.x = x
-        s.x_dot = x_dot
-        s.l = self._height(meas.l)
-        s.x_dot_ref = ref.x_dot_ref
-        s.xi_hat = xi_hat
+        s.theta, s.theta_dot, s.x, s.x_dot, s.l = theta_meas, theta_dot, x, x_dot, l
+        s.x_dot_ref, s.xi_hat = x_dot_ref, np.array(z)
         return s
 
     def step(self, meas: Measurement, ref: Reference, dt: Optional[float] = None) -> TickOutput:
         """Run one tick: returns the wheel torques to send and the estimated state."""
-        dt = self.dt if dt is None else dt
-        x, x_dot, yaw_rate = self.odometry.update(
-            meas.wheel_vel_left, meas.wheel_vel_right, meas.theta_dot, dt)
-        l = self._height(meas.l)
-        xi_hat = self.observer.update(meas.theta_meas, x, self._u_applied, l)
-        s = self._fill_input(meas, ref, x, x_dot, xi_hat)
+        o = self.advance(meas.theta_meas, meas.theta_dot, meas.wheel_vel_left,
+                         meas.wheel_vel_right, meas.l, meas.yaw_rate_gyro, ref.x_dot_ref,
+                         ref.yaw_rate_ref, self.dt if dt is None else dt)
+        return TickOutput(
+            tau_left=o.tau_left, tau_right=o.tau_right, u=o.u, u_cmd=o.u_cmd, theta=o.theta,
+            theta_dot=o.theta_dot, x=o.x, x_dot=o.x_dot, yaw_rate=o.yaw_rate, d_hat=o.d_hat,
+            l=o.l, controller=o.controller, saturated=o.saturated)
+
+    def advance(self, theta_meas: float, theta_dot: float, w_left: float, w_right: float,
+                l_meas: float, yaw_rate_gyro: float, x_dot_ref: float, yaw_rate_ref: float,
+                dt: float) -> TickValues:
+        """
+        ``step`` on plain floats, the tick's path: Measurement's and Reference's fields in.
+
+        Returns ``self.out``, TickOutput's fields rewritten in place by every tick (nothing is
+        built per tick: no Measurement, Reference, TickOutput or numpy array).
+        """
+        x, x_dot, yaw_rate = self.odometry.update(w_left, w_right, theta_dot, dt)
+        if math.isfinite(l_meas):
+            # p.clamp_height(l) (min(max(l, lo), hi)) without its call; a non-finite l (legs
+            # out of reach) keeps the last
+            p = self.p
+            lo, hi = p.height_min, p.height_max
+            l = lo if lo > l_meas else l_meas
+            self._l = hi if hi < l else l
+        l = self._l
+        z = self.observer.update_floats(theta_meas, x, self._u_applied, l)
+        d_hat = z[4]
         if self._auto is not None:
-            choice = self._auto.choose(meas.theta_meas - float(xi_hat[4]), meas.theta_dot, dt)
+            choice = self._auto.choose(theta_meas - d_hat, theta_dot, dt)
             if choice != self._active:
                 self._requested = choice
-        if self._requested is not None:
+        requested = self._requested
+        x_dot_ref_c = x_dot_ref   # the x_dot* the controller tracks
+        if requested is not None:
             # Taking over a moving robot (auto's rule or a parameter set): the hold starts at
             # its speed and brakes at auto.stop_deceleration, instead of pulling it back to
             # where it took over or braking at its small lean limit.
-            self._takeover_speed = x_dot - ref.x_dot_ref if self._requested == HOLD else 0.0
+            self._takeover_speed = x_dot - x_dot_ref if requested == HOLD else 0.0
         if self._takeover_speed:
-            s.x_dot_ref = ref.x_dot_ref + self._takeover_speed
+            x_dot_ref_c = x_dot_ref + self._takeover_speed
             self._takeover_speed = brake_step(self._takeover_speed,
                                               self.config.auto.stop_deceleration, dt)
 
-        if self._requested is not None:
+        if requested is not None:
             # Bumpless transfer: the new controller starts from the current estimate, and the
             # difference to the last command fades out instead of stepping the torque.
-            new = self.controllers[self._requested]
+            s = self._control_input(theta_meas, theta_dot, x, x_dot, l, x_dot_ref_c, z)
+            new = self.controllers[requested]
             new.reset(s)
             u_new = new.compute(s)
-            self._active, self._requested = self._requested, None
+            self._active, self._requested = requested, None
             jump = self._u_cmd - u_new if math.isfinite(u_new) else 0.0
             ticks = max(1, int(round(self.config.switch_blend_time / dt)))
             self._blend_offset = jump
             self._blend_step = jump / ticks
             u_cmd = u_new
         else:
-            u_cmd = self.controllers[self._active].compute(s)
+            controller = self.controllers[self._active]
+            fast = getattr(controller, 'compute_floats', None)
+            if fast is not None:
+                u_cmd = fast(theta_meas, theta_dot, x, x_dot, l, x_dot_ref_c, z)
+            else:
+                u_cmd = controller.compute(self._control_input(
+                    theta_meas, theta_dot, x, x_dot, l, x_dot_ref_c, z))
 
-        if self._blend_offset != 0.0:
-            u_cmd += self._blend_offset
-            if abs(self._blend_offset) <= abs(self._blend_step):
+        blend = self._blend_offset
+        if blend != 0.0:
+            u_cmd += blend
+            if abs(blend) <= abs(self._blend_step):
                 self._blend_offset = 0.0
             else:
-                self._blend_offset -= self._blend_step
+                self._blend_offset = blend - self._blend_step
         if not math.isfinite(u_cmd):
             u_cmd = 0.0  # never pass a non-finite command on; the supervisor sees theta itself
         self._u_cmd = u_cmd
@@ -322,16 +368,17 @@ class BalanceCore:
         # wheel dropping off MuJoCo's ramp spun up into the lifted fault). The integral acts on
         # the gyro's: the wheels overstate a turn on the spot (their tyres scrub: 165 deg/s by
         # the wheels was 136 deg/s of true yaw), so only the gyro's error brings the true rate.
-        r_int = meas.yaw_rate_gyro if c.yaw_rate_source == 'imu' \
-            and math.isfinite(meas.yaw_rate_gyro) else yaw_rate
+        r_int = yaw_rate_gyro if c.yaw_rate_source == 'imu' \
+            and math.isfinite(yaw_rate_gyro) else yaw_rate
         tau_left, tau_right, saturated = wheel_torques(
-            u_cmd, yaw_rate, ref.yaw_rate_ref, self.p, c.yaw_rate_gain, c.max_wheel_torque,
-            yaw.extra(ref.yaw_rate_ref))
-        yaw.update(r_int, ref.yaw_rate_ref, dt, saturated)
+            u_cmd, yaw_rate, yaw_rate_ref, self.p, c.yaw_rate_gain, c.max_wheel_torque,
+            yaw.extra(yaw_rate_ref))
+        yaw.update(r_int, yaw_rate_ref, dt, saturated)
         # The force really applied (after the torque limit) is what the observer must see.
-        self._u_applied = (tau_left + tau_right) / self.p.wheel_radius
-        return TickOutput(
-            tau_left=tau_left, tau_right=tau_right, u=self._u_applied, u_cmd=u_cmd,
-            theta=meas.theta_meas, theta_dot=meas.theta_dot, x=x, x_dot=x_dot,
-            yaw_rate=yaw_rate, d_hat=float(xi_hat[4]), l=l, controller=self._active,
-            saturated=saturated)
+        u = self._u_applied = (tau_left + tau_right) / self.p.wheel_radius
+        o = self.out
+        o.tau_left, o.tau_right, o.u, o.u_cmd = tau_left, tau_right, u, u_cmd
+        o.theta, o.theta_dot, o.x, o.x_dot = theta_meas, theta_dot, x, x_dot
+        o.yaw_rate, o.d_hat, o.l = yaw_rate, d_hat, l
+        o.controller, o.saturated = self._active, saturated
+        return o

@@ -53,31 +53,68 @@ class RateLimiter:
         The value never leaves [-bound, bound] (the jerk-limited approach can pass a target at
         full scale by up to max_jerk * dt^2: it stops at the bound instead).
         """
-        target = finite_or_zero(target)
-        dt = finite_or_zero(dt)
-        if self.max_accel <= 0.0 and self.max_jerk <= 0.0:
-            self.value, self.accel = min(max(target, -bound), bound), 0.0
+        # finite_or_zero's result; its call only for what is not a finite plain float
+        if type(target) is not float or target - target != 0.0:
+            target = finite_or_zero(target)
+        if type(dt) is not float or dt - dt != 0.0:
+            dt = finite_or_zero(dt)
+        # min(a, b) is written b if b < a else a, max(a, b) b if b > a else a: the same result
+        # (NaN included) without the builtins' calls, on the tick's path.
+        max_accel, max_jerk = self.max_accel, self.max_jerk
+        if max_jerk <= 0.0 and max_accel > 0.0 and dt > 0.0:
+            # The ramp (the reference shaper's): the general steps below, shortened.
+            error = target - self.value
+            if error == 0.0:   # held at the target: a_lim = 0, which lands on it
+                v = -bound if -bound > target else target
+                v = bound if bound < v else v
+                self.value, self.accel = v, math.copysign(0.0, error)
+                return v
+            abs_error = abs(error)
+            a_lim = abs_error / dt
+            a_lim = a_lim if a_lim < max_accel else max_accel
+            accel = math.copysign(a_lim, error)
+            if a_lim * dt >= abs_error:  # lands on the target exactly
+                v = -bound if -bound > target else target
+                v = bound if bound < v else v
+                self.value, self.accel = v, accel
+                return v
+            self.accel = accel
+            value = self.value = self.value + accel * dt
+            if abs(value) > bound:
+                self.value, self.accel = math.copysign(bound, value), 0.0
+            return self.value
+        if max_accel <= 0.0 and max_jerk <= 0.0:
+            v = -bound if -bound > target else target
+            self.value, self.accel = bound if bound < v else v, 0.0
             return self.value
         if dt <= 0.0:
             return self.value
-        a_max = self.max_accel if self.max_accel > 0.0 else math.inf
+        a_max = max_accel if max_accel > 0.0 else math.inf
         error = target - self.value
         # Largest acceleration towards the target: within the limit, and not past the target
         # in this very step.
-        a_lim = min(a_max, abs(error) / dt)
-        if self.max_jerk > 0.0:
-            j = self.max_jerk
+        a_lim = abs(error) / dt
+        a_lim = a_lim if a_lim < a_max else a_max
+        if max_jerk > 0.0:
+            j = max_jerk
             # ... and not past it while the acceleration then ramps down to 0 at j: the value
             # still moves by a^2 / (2 j) + a dt / 2 (the discrete sum of that ramp).
-            a_lim = min(a_lim, j * (math.sqrt(0.25 * dt * dt + 2.0 * abs(error) / j) - 0.5 * dt))
+            a_ramp = j * (math.sqrt(0.25 * dt * dt + 2.0 * abs(error) / j) - 0.5 * dt)
+            a_lim = a_ramp if a_ramp < a_lim else a_lim
             toward = 1.0 if error >= 0.0 else -1.0
             a_rel = self.accel * toward   # current acceleration, positive towards the target
-            a_rel = min(max(a_lim, a_rel - j * dt), a_rel + j * dt)
-            accel = min(max(toward * a_rel, -a_max), a_max)
+            lo = a_rel - j * dt
+            lo = lo if lo > a_lim else a_lim
+            hi = a_rel + j * dt
+            a_rel = hi if hi < lo else lo
+            accel = toward * a_rel
+            accel = -a_max if -a_max > accel else accel
+            accel = a_max if a_max < accel else accel
         else:
             accel = math.copysign(a_lim, error)
             if a_lim * dt >= abs(error):  # lands on the target exactly, not a rounding off it
-                self.value, self.accel = min(max(target, -bound), bound), accel
+                v = -bound if -bound > target else target
+                self.value, self.accel = bound if bound < v else v, accel
                 return self.value
         self.accel = accel
         self.value += accel * dt
