@@ -77,12 +77,13 @@ class ArmingSupervisor:
         self.input_conflicts = ''
         self.sensor_conflict = ''
         self._pending: Optional[Tuple[str, bool, str]] = None
-        # The safety checks' reply times per motor, (motor ID, its motor set's reply_times):
-        # what sensing.reply_times() merges into a new map (the hips' over the wheels'), read
-        # from the sets' own maps (core/motors.py updates them in place) without the merge.
-        hips = sensing.hips.reply_times if sensing.hips is not None else None
-        self._replies = [(i, hips if hips is not None and i in hips
-                          else sensing.motors.reply_times) for i in self.safety.motor_ids]
+        # The safety checks' reply times: the motor sets' own maps, live (core/motors.py
+        # updates them in place), where they hold the supervisor's motors in its order, instead
+        # of the map sensing.reply_times() merges anew (None: that one, IDs shared by a set).
+        wheels = sensing.motors.reply_times
+        hips = sensing.hips.reply_times if sensing.hips is not None else {}
+        self._replies = (wheels.items(), hips.items()) if not wheels.keys() & hips.keys() \
+            and list(wheels) + list(hips) == list(self.safety.motor_ids) else None
         self.configure(cfg)
 
     def configure(self, cfg: BalanceConfig) -> None:
@@ -266,7 +267,10 @@ class ArmingSupervisor:
         """
         sup = self.safety
         before = sup._mode
-        sup.update_replies(now, s, self._replies)
+        if self._replies is not None:
+            sup.update_replies(now, s, self._replies)
+        else:
+            sup.update(now, s, self.sensing.reply_times())
         foreign = self.sensing.new_foreign_command()
         if foreign:   # another sender commands our motors: two masters
             sup.report_fault(now, INPUT_CONFLICT, foreign)

@@ -50,6 +50,7 @@ without an accelerometer: core/sensors.py gives NaN for them).
 """
 from collections import deque
 import math
+from math import isfinite
 from typing import Deque, Optional, Sequence, Tuple
 
 #: Specific force [g] below which the robot is in free fall, held by nobody (a hop, a drop).
@@ -140,8 +141,8 @@ class LiftDetector:
              specific_force: float) -> Optional[str]:
         """``update`` with the left and right wheel's torque [N m] and speed [rad/s] apart."""
         g = self.gravity
-        if _FORCE_LOW * g <= specific_force <= _FORCE_HIGH * g:
-            self.accel_seen = True
+        if not self.accel_seen and _FORCE_LOW * g <= specific_force <= _FORCE_HIGH * g:
+            self.accel_seen = True   # for good: once seen, not judged again
         falling = self.accel_seen and specific_force < FREE_FALL * g   # False for NaN
         if load < self.min_load and not falling:   # False for NaN
             if self._unloaded_since is None:
@@ -152,9 +153,8 @@ class LiftDetector:
                                                  1e3 * (now - self._unloaded_since)))
         else:
             self._unloaded_since = None
-        # x - x == 0.0: False for NaN and +-inf (a finite check without a call per value).
-        if not (tau_l - tau_l == 0.0 and tau_r - tau_r == 0.0 and omega_l - omega_l == 0.0
-                and omega_r - omega_r == 0.0 and dt - dt == 0.0) or dt <= 0.0:
+        if not (isfinite(tau_l) and isfinite(tau_r) and isfinite(omega_l) and isfinite(omega_r)
+                and isfinite(dt)) or dt <= 0.0:
             self._reset_wheels()
             return None
         inertia = self.inertia
@@ -175,7 +175,7 @@ class LiftDetector:
         ratio, min_dv, ratios = self.ratio, self.min_dv, self.ratios
         d_free = imp_l - imp0_l
         # |d_free| < min_dv (False for NaN), or the window not yet full: no ratio
-        r = NAN if -min_dv < d_free < min_dv or young else (omega_l - w0_l) / d_free
+        r = NAN if abs(d_free) < min_dv or young else (omega_l - w0_l) / d_free
         ratios[0] = r
         if (r >= ratio or still) and not falling:
             if self._free_l is None:
@@ -183,7 +183,7 @@ class LiftDetector:
         else:
             self._free_l = None
         d_free = imp_r - imp0_r
-        r = NAN if -min_dv < d_free < min_dv or young else (omega_r - w0_r) / d_free
+        r = NAN if abs(d_free) < min_dv or young else (omega_r - w0_r) / d_free
         ratios[1] = r
         if (r >= ratio or still) and not falling:
             if self._free_r is None:
@@ -224,8 +224,7 @@ class LiftDetector:
         d_omega| (see the module docstring).
         """
         still = self._still
-        # pitch_rate finite, height finite and positive (False for NaN)
-        if not (pitch_rate - pitch_rate == 0.0 and 0.0 < height < math.inf):
+        if not (isfinite(pitch_rate) and isfinite(height) and height > 0.0):
             still.clear()
             self.still_share = math.nan
             return False
@@ -240,10 +239,10 @@ class LiftDetector:
         _, imp_l, imp_r, omega_l, omega_r, _ = sample
         min_dv, ratio = self.still_min_dv, self.ratio
         d_free = imp_l - imp0_l
-        if -min_dv < d_free < min_dv or (omega_l - w0_l) / d_free < ratio:
+        if abs(d_free) < min_dv or (omega_l - w0_l) / d_free < ratio:
             return False
         d_free = imp_r - imp0_r
-        if -min_dv < d_free < min_dv or (omega_r - w0_r) / d_free < ratio:
+        if abs(d_free) < min_dv or (omega_r - w0_r) / d_free < ratio:
             return False
         d_omega = 0.5 * (omega_l - w0_l + omega_r - w0_r)
         ground = self.wheel_radius / height * abs(d_omega)

@@ -41,6 +41,7 @@ its samples through a moment where it does not (the fit of a whole window is wha
 """
 from collections import deque
 import math
+from math import isfinite
 from typing import Deque, Optional, Tuple
 
 from .model import theta_ddot_free_and_driven
@@ -112,9 +113,8 @@ class ResponseCheck:
         torque to the next's (the IMU and the loop are not in step on a robot), None: every
         tick has one. A non-finite input restarts the window.
         """
-        # x - x == 0.0: False for NaN and +-inf (a finite check without a call per value).
-        if not (theta - theta == 0.0 and theta_dot - theta_dot == 0.0 and u - u == 0.0
-                and l - l == 0.0 and dt - dt == 0.0) or dt <= 0.0 or l <= 0.0:
+        if not (isfinite(theta) and isfinite(theta_dot) and isfinite(u) and isfinite(l)
+                and isfinite(dt)) or dt <= 0.0 or l <= 0.0:
             self.reset()
             return None
         p = self.params

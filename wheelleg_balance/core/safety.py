@@ -28,7 +28,8 @@ yaw rate* to zero while the robot keeps balancing.
 from dataclasses import dataclass
 import enum
 import math
-from typing import Dict, Mapping, NamedTuple, Optional, Sequence, Tuple
+from math import isfinite
+from typing import Dict, Iterable, Mapping, NamedTuple, Optional, Sequence, Tuple
 
 IMU_STALE = 'imu_stale'
 JOINT_STATES_STALE = 'joint_states_stale'
@@ -265,6 +266,8 @@ class SensorSnapshot:
 
 
 _NO_FAULTS: Tuple[Fault, ...] = ()
+#: The motors' reply times as ``_check`` reads them: groups of (motor ID, time [s] or None).
+ReplyTimes = Sequence[Iterable[Tuple[int, Optional[float]]]]
 
 
 class SafetySupervisor:
@@ -309,11 +312,17 @@ class SafetySupervisor:
     def check(self, now: float, s: SensorSnapshot,
               motor_reply_times: Mapping[int, Optional[float]]) -> Tuple[Fault, ...]:
         """Return the fault conditions present at time ``now`` [s] (empty tuple: none)."""
-        return self._check(now, s, [(i, motor_reply_times) for i in self.motor_ids])
+        return self._check(now, s, self._replies(motor_reply_times))
 
-    def _check(self, now: float, s: SensorSnapshot,
-               replies: Sequence[Tuple[int, Mapping[int, Optional[float]]]]) -> Tuple[Fault, ...]:
-        """``check`` with the reply times as (motor ID, {motor ID: time}) per motor_ids."""
+    def _replies(self, motor_reply_times: Mapping[int, Optional[float]]) -> ReplyTimes:
+        """Return ``motor_reply_times`` as ``_check`` takes them (nothing while not commanding)."""
+        if self._commanding_since is None:
+            return ()
+        get = motor_reply_times.get
+        return ([(i, get(i)) for i in self.motor_ids],)
+
+    def _check(self, now: float, s: SensorSnapshot, replies: ReplyTimes) -> Tuple[Fault, ...]:
+        """``check`` with the reply times as ``update_replies`` takes them."""
         lim = self.limits
         found = None
         imu_time, joint_time = s.imu_time, s.joint_time
@@ -332,16 +341,14 @@ class SafetySupervisor:
         else:
             w_l, w_r = s.wheel_vel_left, s.wheel_vel_right
             max_rate, max_w = lim.max_pitch_rate, lim.max_wheel_velocity
-            # s.finite() and lim.plausible(s) without the calls: x - x == 0.0 is False for
-            # NaN and +-inf; |x| <= m as -m <= x <= m (False for NaN alike).
-            if not (theta - theta == 0.0 and theta_dot - theta_dot == 0.0
-                    and w_l - w_l == 0.0 and w_r - w_r == 0.0 and s.l - s.l == 0.0):
+            # s.finite() and lim.plausible(s) without the calls
+            if not (isfinite(theta) and isfinite(theta_dot) and isfinite(w_l) and isfinite(w_r)
+                    and isfinite(s.l)):
                 found = found or []
                 found.append(Fault(NON_FINITE, 'non-finite measurement: theta %r theta_dot %r '
                                    'wheel_vel %r %r l %r' % (theta, theta_dot, w_l, w_r, s.l),
                                    now))
-            elif not (-max_rate <= theta_dot <= max_rate and -max_w <= w_l <= max_w
-                      and -max_w <= w_r <= max_w):
+            elif not (abs(theta_dot) <= max_rate and abs(w_l) <= max_w and abs(w_r) <= max_w):
                 # Finite but impossible: one such sample would throw odometry and the
                 # observer off.
                 found = found or []
@@ -349,14 +356,13 @@ class SafetySupervisor:
                                    '(max %.4g), wheel_vel %.4g %.4g rad/s (max %.4g)'
                                    % (theta_dot, max_rate, w_l, w_r, max_w), now))
         if imu_time is not None:
-            # |x| > m as x > m or x < -m: False for NaN, as abs(x) > m is.
             fall = lim.fall_angle
-            if theta > fall or theta < -fall:
+            if abs(theta) > fall:  # False for NaN
                 found = found or []
                 found.append(Fault(FALL, '|theta| %.1f deg > fall_angle %.1f deg'
                                    % (math.degrees(abs(theta)), math.degrees(fall)), now))
             fall = lim.fall_roll_angle
-            if roll > fall or roll < -fall:
+            if abs(roll) > fall:
                 found = found or []
                 found.append(Fault(ROLL, '|roll| %.1f deg > fall_roll_angle %.1f deg (lying on '
                                    'a side?)' % (math.degrees(abs(roll)), math.degrees(fall)),
@@ -364,16 +370,16 @@ class SafetySupervisor:
         commanding_since = self._commanding_since
         if commanding_since is not None:
             timeout = lim.motor_timeout
-            for motor_id, times in replies:
-                last = times.get(motor_id)
-                if last is not None and now - last <= timeout:
-                    continue   # answered lately: since >= last is within the timeout too
-                since = commanding_since if last is None else max(last, commanding_since)
-                if now - since > timeout:
-                    found = found or []
-                    found.append(Fault(MOTOR_SILENT, 'motor %d silent for %.3f s '
-                                       '(motor_timeout %.3f s)' % (motor_id, now - since,
-                                                                   timeout), now))
+            for motors in replies:
+                for motor_id, last in motors:
+                    if last is not None and now - last <= timeout:
+                        continue   # answered lately: since >= last is within the timeout too
+                    since = commanding_since if last is None else max(last, commanding_since)
+                    if now - since > timeout:
+                        found = found or []
+                        found.append(Fault(MOTOR_SILENT, 'motor %d silent for %.3f s '
+                                           '(motor_timeout %.3f s)' % (motor_id, now - since,
+                                                                       timeout), now))
             if self._send_error is not None:
                 found = found or []
                 found.append(Fault(CAN_SEND, 'CAN send failed: %s' % self._send_error, now))
@@ -382,15 +388,14 @@ class SafetySupervisor:
     def update(self, now: float, s: SensorSnapshot,
                motor_reply_times: Mapping[int, Optional[float]]) -> Mode:
         """Run the checks of one control tick; a commanding mode goes to FAULT on any."""
-        return self.update_replies(now, s, [(i, motor_reply_times) for i in self.motor_ids])
+        return self.update_replies(now, s, self._replies(motor_reply_times))
 
-    def update_replies(self, now: float, s: SensorSnapshot,
-                       replies: Sequence[Tuple[int, Mapping[int, Optional[float]]]]) -> Mode:
+    def update_replies(self, now: float, s: SensorSnapshot, replies: ReplyTimes) -> Mode:
         """
-        ``update`` with the reply times as (motor ID, {motor ID: time [s] or None}) per motor.
+        ``update`` with the reply times as groups of (motor ID, time [s] or None) pairs.
 
-        In ``motor_ids`` order; the maps are read every call (the tick passes its motor sets'
-        own ``reply_times``, built once, instead of one merged map per tick).
+        The groups' pairs in turn are every motor of ``motor_ids``, in order: the tick passes
+        its motor sets' live ``reply_times.items()`` (no merged map, no lookups per tick).
         """
         self._conditions = conditions = self._check(now, s, replies)
         if conditions and self._mode in COMMANDING:
