@@ -244,7 +244,7 @@ class BalanceLoop:
         state.l_ref = legs.l_ref
         state.l_target = legs.target
         state.controller = ctl.controller_index
-        state.mode = int(self.supervisor._mode)
+        state.mode = self.supervisor._mode._value_   # int(mode) without the call
         odom, o = r.odom, ctl.core.odometry   # ctl.odometry without its property's call
         odom.x, odom.y, odom.yaw = o.pose
         x_dot, yaw_rate = o.x_dot, o.yaw_rate

@@ -120,14 +120,16 @@ class ResponseCheck:
         p = self.params
         free, driven = theta_ddot_free_and_driven(theta, theta_dot, u, l, p.body_mass,
                                                   p.wheel_mass, p.gravity)
-        self._x += dt * (driven - free)
-        self._free += dt * free
+        # The terms since the newest sample, in locals: stored only where no new one came.
+        x = self._x + dt * (driven - free)
+        free_sum = self._free + dt * free
         if sample is not None and sample == self._sample:
+            self._x, self._free = x, free_sum
             self._span += dt
             return None   # no new measurement: the model's terms wait for it
         self._sample = sample
         previous, self._theta_dot = self._theta_dot, theta_dot
-        x, y = self._x, theta_dot - (theta_dot if previous is None else previous) - self._free
+        y = theta_dot - (theta_dot if previous is None else previous) - free_sum
         w = self._span + dt   # the time since the previous sample [s]
         self._x = self._free = self._span = 0.0
         if previous is None:
