@@ -129,11 +129,15 @@ class Actuation:
     def __init__(self, wheels, legs, poll_wheels: bool):
         self.wheels, self.legs, self.poll_wheels = wheels, legs, poll_wheels
         self._names = [m.name for m in wheels.motors]
+        # The left and the right wheel's motor (``wheels.torque_frames`` looks them up by
+        # name for every command: the same {motor ID: direction tau} map, built here).
+        self._left, self._right = wheels.motors
 
     def torques(self, r, tau_left: float, tau_right: float) -> None:
         """Command the wheel torques [N m] (forward positive; the directions applied here)."""
-        left, right = self._names
-        r.frames += self.wheels.torque_frames({left: tau_left, right: tau_right})
+        left, right = self._left, self._right
+        r.frames += self.wheels.protocol.torque_frames({
+            left.motor_id: left.direction * tau_left, right.motor_id: right.direction * tau_right})
 
     def zero(self, r) -> None:
         """Zero torque to the wheels, staying in motor mode (FAULT, HOMING)."""

@@ -19,8 +19,9 @@ from .config import BalanceConfig
 from .lift import FREE_FALL, LiftDetector
 from .motor_health import judge_motors
 from .response import MAX_PITCH as RESPONSE_PITCH, ResponseCheck
-from .safety import COMMANDING, IMU_STALE, INPUT_CONFLICT, LEGS, LIFTED, LOOP_STALL, Mode, \
-    OVER_TEMPERATURE, RESPONSE, SafetyLimits, SafetySupervisor, SensorSnapshot
+from .safety import BALANCING, COMMANDING, DISARMED, FAULT, HOMING, IMU_STALE, \
+    INPUT_CONFLICT, LEGS, LIFTED, LOOP_STALL, Mode, OVER_TEMPERATURE, RESPONSE, SafetyLimits, \
+    SafetySupervisor, SensorSnapshot, SITTING
 from .sensing import motor_name
 
 #: auto_arm waits until the ticks have come without a gap beyond the sensor timeouts for this
@@ -30,6 +31,8 @@ from .sensing import motor_name
 AUTO_ARM_STEADY = 0.05
 #: The inputs whose conflicts are about the sensors (TickInputs.conflicts): FAULT, no arming.
 SENSOR_INPUTS = ('imu', 'joint_states')
+#: -MAX_PITCH of the response check: |theta| <= MAX_PITCH as two comparisons.
+_RESPONSE_PITCH_LOW = -RESPONSE_PITCH
 #: What the tick carries out for a decision (``Action.kind``).
 STOP, SIT, HOME, BALANCE = 'stop', 'sit', 'home', 'balance'
 
@@ -74,6 +77,13 @@ class ArmingSupervisor:
         self.input_conflicts = ''
         self.sensor_conflict = ''
         self._pending: Optional[Tuple[str, bool, str]] = None
+        # The safety checks' reply times: the motor sets' own maps, live (core/motors.py
+        # updates them in place), where they hold the supervisor's motors in its order, instead
+        # of the map sensing.reply_times() merges anew (None: that one, IDs shared by a set).
+        wheels = sensing.motors.reply_times
+        hips = sensing.hips.reply_times if sensing.hips is not None else {}
+        self._replies = (wheels.items(), hips.items()) if not wheels.keys() & hips.keys() \
+            and list(wheels) + list(hips) == list(self.safety.motor_ids) else None
         self.configure(cfg)
 
     def configure(self, cfg: BalanceConfig) -> None:
@@ -84,12 +94,13 @@ class ArmingSupervisor:
     @property
     def mode(self) -> Mode:
         """Return the mode."""
-        return self.safety.mode
+        return self.safety._mode
 
     def begin(self, now: float, dt: float) -> float:
         """Start a tick ``dt`` [s] after the last; return the longest gap that is no stall."""
         lim = self.safety.limits
-        stall_limit = min(lim.imu_timeout, lim.joint_state_timeout)
+        imu, joints = lim.imu_timeout, lim.joint_state_timeout
+        stall_limit = joints if joints < imu else imu   # min(imu, joints)
         if self.steady_since is None or dt > stall_limit:
             self.steady_since = now
         return stall_limit
@@ -106,11 +117,14 @@ class ArmingSupervisor:
         """
         sensing = self.sensing
         scale, hot, problems = judge_motors(sensing.health, sensing.motors, motor_name)
-        for code, text in problems:
-            if code:
-                self.safety.report_fault(now, code, text)
-        self.motor_problems = [text for _, text in problems]
-        if hot is not None and self.safety.mode is Mode.HOMING:
+        if problems:
+            for code, text in problems:
+                if code:
+                    self.safety.report_fault(now, code, text)
+            self.motor_problems = [text for _, text in problems]
+        else:
+            self.motor_problems = []
+        if hot is not None and self.safety._mode is HOMING:
             self.safety.report_fault(now, OVER_TEMPERATURE, hot)
         return scale, hot
 
@@ -127,13 +141,16 @@ class ArmingSupervisor:
     def request(self, now: float, inputs, s: SensorSnapshot, events: list) -> Optional[Action]:
         """Decide an emergency stop, an arm or disarm request, or auto_arm (module docstring)."""
         conflicts = inputs.conflicts
-        self.sensor_conflict = '; '.join(conflicts[k] for k in SENSOR_INPUTS
-                                         if k in conflicts) if conflicts else ''
-        self.input_conflicts = '; '.join(conflicts.values()) if conflicts else ''
+        if conflicts:
+            self.sensor_conflict = '; '.join(conflicts[k] for k in SENSOR_INPUTS
+                                             if k in conflicts)
+            self.input_conflicts = '; '.join(conflicts.values())
+        else:
+            self.sensor_conflict = self.input_conflicts = ''
         sup = self.safety
         if inputs.estop:
             self.auto_arm = False
-            if sup.mode in COMMANDING:
+            if sup._mode in COMMANDING:
                 events.append(('warn', 'emergency stop: zero torque, motors to rest'))
             return self._stop(False)
         if inputs.arm is not None:
@@ -146,10 +163,10 @@ class ArmingSupervisor:
                 self._pending = ('refused', False, 'arming refused: ' + self.sensor_conflict)
             else:
                 action = self._arm(inputs.arm, now, s)
-            self.lifted = self.lifted and sup.mode not in COMMANDING
+            self.lifted = self.lifted and sup._mode not in COMMANDING
             return action
         if self.auto_arm and inputs.guarded and not self.sensor_conflict \
-                and sup.mode is Mode.DISARMED and now - self.steady_since >= AUTO_ARM_STEADY \
+                and sup._mode is DISARMED and now - self.steady_since >= AUTO_ARM_STEADY \
                 and self._can_arm(now, s):
             self.auto_arm = False  # at most once per start, whatever the outcome
             action = self._arm(True, now, s)
@@ -160,13 +177,13 @@ class ArmingSupervisor:
     def _arm(self, arm: bool, now: float, s: SensorSnapshot) -> Optional[Action]:
         sup = self.safety
         if not arm:
-            if sup.mode is Mode.BALANCING and self.sit_down():
+            if sup._mode is BALANCING and self.sit_down():
                 self._pending = ('sit', True, 'sitting down: lowering, leaning onto the tail, '
                                  'then zero torque')
                 return Action(SIT)
             return self._stop(True)
         reason = self._refusal(now, s)
-        if sup.mode is Mode.BALANCING or sup.mode is Mode.SITTING:
+        if sup._mode is BALANCING or sup._mode is SITTING:
             self._pending = ('noop', True, 'already balancing')
         elif reason:
             self._pending = ('refused', False, 'arming refused: %s' % reason)
@@ -199,7 +216,7 @@ class ArmingSupervisor:
                         reply_needed: bool) -> Optional[Action]:
         """Go to BALANCING (an arm, or the legs raised after HOMING): the BALANCE action."""
         sup = self.safety
-        from_homing = sup.mode is Mode.HOMING
+        from_homing = sup._mode is HOMING
         ok, reason = sup.arm(now, s, self.sensing.reply_times())
         if ok:
             if reply_needed:
@@ -238,18 +255,22 @@ class ArmingSupervisor:
     # --------------------------------------------------------------------------- checks
 
     def check(self, now: float, s: SensorSnapshot, dt: float, stall_limit: float,
-              commanded: bool, imu_silent: str, torques: Tuple[float, float], d_hat: float,
-              rising: bool, events: list) -> Mode:
+              commanded: bool, imu_silent: str, tau_left: float, tau_right: float,
+              d_hat: float, rising: bool, events: list) -> Mode:
         """
         Run the checks of a tick; a commanding mode goes to FAULT on any. Return the mode.
 
         commanded: the motors were commanded since the previous tick (a gap before an arm
-        held no torque of ours); imu_silent: TickInputs.imu_silent; torques: the wheel
-        torques of the last tick [N m] (applied since); d_hat [rad]; rising: from the tail.
+        held no torque of ours); imu_silent: TickInputs.imu_silent; tau_left, tau_right: the
+        wheel torques of the last tick [N m] (applied since); d_hat [rad]; rising: from the
+        tail. (The supervisor's ``_mode`` is read directly: the property costs a call a use.)
         """
         sup = self.safety
-        before = sup.mode
-        sup.update(now, s, self.sensing.reply_times())
+        before = sup._mode
+        if self._replies is not None:
+            sup.update_replies(now, s, self._replies)
+        else:
+            sup.update(now, s, self.sensing.reply_times())
         foreign = self.sensing.new_foreign_command()
         if foreign:   # another sender commands our motors: two masters
             sup.report_fault(now, INPUT_CONFLICT, foreign)
@@ -257,15 +278,16 @@ class ArmingSupervisor:
             sup.report_fault(now, INPUT_CONFLICT, self.sensor_conflict)
         if imu_silent:
             sup.report_fault(now, IMU_STALE, imu_silent)
-        if commanded and dt > stall_limit and sup.mode in COMMANDING:
+        if commanded and dt > stall_limit and sup._mode in COMMANDING:
             sup.report_fault(now, LOOP_STALL, 'control loop stalled %.1f ms (longer than the '
                              'sensor timeouts, %.0f ms)' % (1e3 * dt, 1e3 * stall_limit))
-        if self.motion.check(now, s, dt, torques, d_hat, rising, sup):
+        if self.motion.check(now, s, dt, tau_left, tau_right, d_hat, rising, sup):
             self.lifted = True
-        if sup.mode is Mode.FAULT and before in COMMANDING:
+        mode = sup._mode
+        if mode is FAULT and before in COMMANDING:
             self.auto_arm = False
             events.append(('error', 'FAULT: ' + '; '.join(f.message for f in sup.faults)))
-        return sup.mode
+        return mode
 
     # ---------------------------------------------------------------------- the reply
 
@@ -278,7 +300,7 @@ class ArmingSupervisor:
         while commanding is a fault (its line goes to ``events``).
         """
         if sent or error is not None:
-            before = self.safety.mode
+            before = self.safety._mode
             self.safety.report_send(now, error is None, error or '')
             if error is not None and before in COMMANDING:
                 events.append(('error', 'FAULT: CAN send failed: %s' % error))
@@ -340,56 +362,47 @@ class MotionChecks:
         resp.window, resp.min_effect = sc.response_window, sc.response_min_effect
         resp.gain, resp.hold = sc.response_gain, sc.response_time
 
-    def check(self, now, s, dt, torques, d_hat, rising, sup) -> bool:
-        """Run both checks on ``sup`` (the response first); return True when lifted."""
-        if self._check_response(now, s, dt, torques, d_hat, sup):
-            return False
-        return self._check_lift(now, s, dt, torques, d_hat, rising, sup)
+    def check(self, now: float, s: SensorSnapshot, dt: float, tau_left: float,
+              tau_right: float, d_hat: float, rising: bool, sup: SafetySupervisor) -> bool:
+        """
+        Run both checks on ``sup`` (the response first); return True when lifted.
 
-    def _check_lift(self, now, s, dt, torques, d_hat, rising, sup) -> bool:
-        """Fault when the wheels spin free (core/lift.py): lifted; the legs then hold."""
-        lift = self.lift
-        if not sup.torque_allowed:
-            lift.reset()
+        The response (core/response.py): a fault when the pitch answers the wheel torque with
+        the wrong sign, judged where model (1) holds: the wheels commanded, near upright (the
+        tail off the ground), not in free fall. The lift (core/lift.py): a fault when the
+        wheels spin free; the legs then hold. Both see the torques of the last tick [N m].
+        """
+        mode = sup._mode
+        if not (mode is BALANCING or mode is SITTING):   # not sup.torque_allowed
+            self.response.reset()
+            self.lift.reset()
+            return False
+        p, lift = self.p, self.lift
+        specific_force = self.sensing.imu.specific_force
+        theta = s.theta - d_hat
+        falling = lift.accel_seen and specific_force < FREE_FALL * p.gravity  # False for NaN
+        u = (tau_left + tau_right) / p.wheel_radius
+        reason = self.response.update(now, theta, s.theta_dot, u, s.l, dt,
+                                      _RESPONSE_PITCH_LOW <= theta <= RESPONSE_PITCH
+                                      and not falling, s.imu_time)
+        if reason is not None:
+            sup.report_fault(now, RESPONSE, reason)
             return False
         # Rising from the tail or sitting down onto it, the tail carries part of the weight,
         # and a body tipping over (a push, a fall) unloads the legs too: their load tells
         # only while balancing near upright.
-        near_upright = abs(s.theta - d_hat) <= sup.limits.upright_pitch
-        load = self.legs.load() if not rising and near_upright \
-            and sup.mode is Mode.BALANCING else math.nan
+        near_upright = abs(theta) <= sup.limits.upright_pitch
+        load = self.legs.load() if not rising and near_upright and mode is BALANCING \
+            else math.nan
         # The wheels' rotation in the world (the encoders read it relative to the leg): a
         # free wheel's follows the torque alone, whatever the body does. The still-body rule
         # needs model (1): near upright, the tail off the ground.
-        reason = lift.update(now, torques,
-                             (s.wheel_vel_left + s.theta_dot, s.wheel_vel_right + s.theta_dot),
-                             dt, load, s.theta_dot if near_upright else math.nan, s.l,
-                             self.sensing.imu.specific_force)
+        theta_dot = s.theta_dot
+        reason = lift.step(now, tau_left, tau_right, s.wheel_vel_left + theta_dot,
+                           s.wheel_vel_right + theta_dot, dt, load,
+                           theta_dot if near_upright else math.nan, s.l, specific_force)
         if reason is None:
             return False
         self.legs.lifted()
         sup.report_fault(now, LIFTED, reason)
-        return True
-
-    def _check_response(self, now, s, dt, torques, d_hat, sup) -> bool:
-        """
-        Fault when the pitch answers the wheel torque with the wrong sign (core/response.py).
-
-        Judged where model (1) holds: the wheels commanded, near upright (the tail off the
-        ground), not in free fall. Returns True when it faulted.
-        """
-        check = self.response
-        theta = s.theta - d_hat
-        falling = self.lift.accel_seen and \
-            self.sensing.imu.specific_force < FREE_FALL * self.p.gravity   # False for NaN
-        if not sup.torque_allowed:
-            check.reset()
-            return False
-        u = (torques[0] + torques[1]) / self.p.wheel_radius
-        reason = check.update(now, theta, s.theta_dot, u, s.l, dt,
-                              judge=abs(theta) <= RESPONSE_PITCH and not falling,
-                              sample=s.imu_time)
-        if reason is None:
-            return False
-        sup.report_fault(now, RESPONSE, reason)
         return True

@@ -27,7 +27,7 @@ BALANCING and SITTING the controller's (or the sit-down's) torques; FAULT zero w
 every tick, the hips damping (or, lifted, holding); DISARMED nothing but, every 20 ms, exit
 frames that keep the motors' replies coming while they rest. docs/architecture.md draws it.
 """
-import math
+from math import isfinite
 from typing import Any, Dict, List, Mapping, Optional, Tuple
 
 from .actuation import Actuation
@@ -37,7 +37,8 @@ from .balancing import Balancing, core_config  # noqa: F401 (core_config: its ol
 from .config import BalanceConfig
 from .leg_task import LEG_FAULT, LegTask, NoLegs, RAISED
 from .protocols.base import Frame
-from .safety import COMMANDING, LEGS, LIFTED, Mode, SensorSnapshot
+from .safety import BALANCING, COMMANDING, DISARMED, FAULT, HOMING, LEGS, LIFTED, Mode, \
+    SensorSnapshot, SITTING
 from .schema import with_changes
 # The names below had their home here; importers of older code find them still.
 from .sensing import all_stop_frames, build_protocol, five_bar, FOREIGN_COMMAND_HOLD, \
@@ -93,32 +94,36 @@ class BalanceLoop:
     def tick(self, now: float, inputs: TickInputs) -> TickResult:
         """Run one control tick at monotonic time ``now`` [s] (see the module docstring)."""
         r, arming, ctl, legs = self._begin(now, inputs)
-        dt = now - self._last_now if self._last_now is not None else self.period
-        self._last_now = now
+        last, self._last_now = self._last_now, now
+        dt = now - last if last is not None else self.period
         stall_limit = arming.begin(now, dt)
         self.sensing.take(inputs.imu, inputs.joints, inputs.frames, ctl.accel, r.events)
         ctl.take(inputs.cmd_vel, inputs.cmd_height, inputs.conflicts, legs)
         s = self.sensing.read(now, legs.read(), legs.height)
-        commanded = arming.mode in COMMANDING   # since the previous tick
-        if not arming.safety.torque_allowed and s.imu_time is not None \
-                and s.joint_time is not None and arming.safety.limits.plausible(s):
+        sup = arming.safety   # its _mode read directly: the properties cost a call a use
+        mode = sup._mode
+        commanded = mode in COMMANDING   # since the previous tick
+        if not (mode is BALANCING or mode is SITTING) and s.imu_time is not None \
+                and s.joint_time is not None and sup.limits.plausible(s):
             ctl.coast(s, dt)
         ctl.estimate_acceleration(dt)
         self._motor_health(now, r)
-        self._act(arming.request(now, inputs, s, r.events), now, s)
+        action = arming.request(now, inputs, s, r.events)
+        if action is not None:
+            self._act(action, now, s)
         st = r.state   # still the last tick's torques: applied since
         mode = arming.check(now, s, dt, stall_limit, commanded, inputs.imu_silent,
-                            (st.tau_left, st.tau_right), ctl.d_hat, ctl.rising, r.events)
-        if mode is Mode.BALANCING or mode is Mode.SITTING:
+                            st.tau_left, st.tau_right, ctl.d_hat, ctl.rising, r.events)
+        if mode is BALANCING or mode is SITTING:
             self._balance(mode, now, s, dt)
         else:
-            if mode is Mode.FAULT or mode is Mode.HOMING:
+            if mode is FAULT or mode is HOMING:
                 self.actuation.zero(r)
-            elif mode is Mode.DISARMED:
+            elif mode is DISARMED:
                 self.actuation.poll(r, self._ticks)
-            ctl.idle(r.state)
+            ctl.idle(st)
         self._step_legs(mode, now, s, dt)
-        if mode is Mode.SITTING and legs.sat_down:
+        if mode is SITTING and legs.sat_down:
             r.events.append(('info', legs.finish_sit_down()))
             self._act(arming.disarm(), now, s)
         self._publish(s)
@@ -136,7 +141,7 @@ class BalanceLoop:
         """Judge the motors' health: the wheels' torque derated; too hot, the sit-down."""
         scale, hot = self.arming.motor_health(now)
         self.balancing.derate(scale)
-        if hot is not None and self.arming.mode is Mode.BALANCING and self.arming.sit_down():
+        if hot is not None and self.arming.safety._mode is BALANCING and self.arming.sit_down():
             self.legs_task.start_sit_down()
             r.events.append(('warn', 'over-temperature, sitting down: ' + hot))
 
@@ -162,7 +167,7 @@ class BalanceLoop:
     def _balance(self, mode: Mode, now: float, s: SensorSnapshot, dt: float) -> None:
         """Run the controller (or the sit-down's lean and brake); command the wheels."""
         r, ctl, legs = self._result, self.balancing, self.legs_task
-        sitting = mode is Mode.SITTING and legs.sit is not None
+        sitting = mode is SITTING and legs.sit is not None
         out, x_ref, w_ref = ctl.step(now, s, dt, self.imu.yaw_rate, sitting)
         tau_l, tau_r, u = out.tau_left, out.tau_right, out.u
         if sitting:
@@ -179,7 +184,8 @@ class BalanceLoop:
     def _step_legs(self, mode: Mode, now: float, s: SensorSnapshot, dt: float) -> None:
         """Add the leg task's frames; act on its events (raised, a leg fault, a line)."""
         r, arming = self._result, self.arming
-        lifted = any(f.code == LIFTED for f in arming.safety.faults)
+        faults = arming.safety._faults   # empty but in FAULT
+        lifted = any(f.code == LIFTED for f in faults) if faults else False
         frames, events = self.legs_task.step(mode, now, s, dt, s.theta - self.balancing.d_hat,
                                              self.balancing.rising, self._ticks, lifted,
                                              self.imu.gyro[0])
@@ -238,11 +244,12 @@ class BalanceLoop:
         state.l_ref = legs.l_ref
         state.l_target = legs.target
         state.controller = ctl.controller_index
-        state.mode = int(self.supervisor.mode)
-        odom, o = r.odom, ctl.odometry
+        state.mode = self.supervisor._mode._value_   # int(mode) without the call
+        odom, o = r.odom, ctl.core.odometry   # ctl.odometry without its property's call
         odom.x, odom.y, odom.yaw = o.pose
-        odom.x_dot = o.x_dot if math.isfinite(o.x_dot) else 0.0
-        odom.yaw_rate = o.yaw_rate if math.isfinite(o.yaw_rate) else 0.0
+        x_dot, yaw_rate = o.x_dot, o.yaw_rate
+        odom.x_dot = x_dot if isfinite(x_dot) else 0.0
+        odom.yaw_rate = yaw_rate if isfinite(yaw_rate) else 0.0
 
     def joint_values(self, now: float) -> Tuple[List[float], List[float], List[float]]:
         """

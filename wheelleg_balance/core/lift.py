@@ -50,6 +50,7 @@ without an accelerometer: core/sensors.py gives NaN for them).
 """
 from collections import deque
 import math
+from math import isfinite
 from typing import Deque, Optional, Sequence, Tuple
 
 #: Specific force [g] below which the robot is in free fall, held by nobody (a hop, a drop).
@@ -57,6 +58,8 @@ FREE_FALL = 0.5
 #: Specific forces [g] an accelerometer that measures reports at rest (about 1): one seen
 #: tells that the IMU has an accelerometer; a driver without one reports zeros.
 PLAUSIBLE_FORCE = (0.5, 1.5)
+_FORCE_LOW, _FORCE_HIGH = PLAUSIBLE_FORCE
+NAN = math.nan
 
 
 class LiftDetector:
@@ -66,8 +69,9 @@ class LiftDetector:
     inertia: I_w, one wheel's (and its rotor's) inertia about the axle [kg m^2]; window [s];
     min_dv [rad/s]; ratio [-]; free_time [s]; min_load [N] (-inf: the legs' load is not
     known); unloaded_time [s]; still_window [s], still_min_dv [rad/s], still_ratio [-] of the
-    still-body rule; wheel_radius r_w [m]; gravity [m/s^2]. ``update`` once per tick while the
-    wheels are commanded; ``reset`` when they are not.
+    still-body rule; wheel_radius r_w [m]; gravity [m/s^2]. ``update`` (or ``step``, the same
+    with the wheels' figures apart) once per tick while the wheels are commanded; ``reset``
+    when they are not.
     """
 
     def __init__(self, inertia: float, window: float, min_dv: float, ratio: float,
@@ -79,10 +83,10 @@ class LiftDetector:
         self.still_ratio = still_ratio
         self.wheel_radius = wheel_radius
         self.gravity = gravity
-        # (time [s], sum of tau dt / I_w per wheel [rad/s], omega per wheel [rad/s], pitch
-        # rate [rad/s]) over still_window
-        self._still: Deque[Tuple[float, Tuple[float, float], Tuple[float, float], float]] = \
-            deque()
+        # The samples over still_window: (time [s], sum of tau dt / I_w of the left and the
+        # right wheel [rad/s], omega left and right [rad/s], pitch rate [rad/s]). ``_hist``
+        # holds the same tuples over ``window`` (one tuple per tick serves both).
+        self._still: Deque[Tuple[float, float, float, float, float, float]] = deque()
         #: True once the IMU reported a plausible specific force (it has an accelerometer).
         self.accel_seen = False
         #: The newest still-body figures: the pitch rate's change over the one (r_w / l)
@@ -96,10 +100,11 @@ class LiftDetector:
         self.min_dv = min_dv
         self.ratio = ratio
         self.free_time = free_time
-        # (time [s], sum of tau dt / I_w per wheel [rad/s], omega per wheel [rad/s])
-        self._hist: Deque[Tuple[float, Tuple[float, float], Tuple[float, float]]] = deque()
-        self._impulse = [0.0, 0.0]
-        self._free_since: list = [None, None]
+        self._hist: Deque[Tuple[float, float, float, float, float, float]] = deque()
+        # sum of tau dt / I_w per wheel [rad/s]; since when each wheel counts as free [s]
+        self._impulse_l = self._impulse_r = 0.0
+        self._free_l: Optional[float] = None
+        self._free_r: Optional[float] = None
         #: The newest ratio d_omega / d_free per wheel (NaN: too little torque to tell).
         self.ratios = [math.nan, math.nan]
 
@@ -112,8 +117,8 @@ class LiftDetector:
         self._hist.clear()
         self._still.clear()
         self.still_share = math.nan
-        self._impulse = [0.0, 0.0]
-        self._free_since = [None, None]
+        self._impulse_l = self._impulse_r = 0.0
+        self._free_l = self._free_r = None
         self.ratios = [math.nan, math.nan]
 
     def update(self, now: float, torques: Sequence[float], speeds: Sequence[float],
@@ -128,9 +133,16 @@ class LiftDetector:
         Returns the reason when the robot is lifted (the fault), else None. A non-finite torque
         or speed restarts the windows (the sensor checks name it).
         """
+        return self.step(now, torques[0], torques[1], speeds[0], speeds[1], dt, load,
+                         pitch_rate, height, specific_force)
+
+    def step(self, now: float, tau_l: float, tau_r: float, omega_l: float, omega_r: float,
+             dt: float, load: float, pitch_rate: float, height: float,
+             specific_force: float) -> Optional[str]:
+        """``update`` with the left and right wheel's torque [N m] and speed [rad/s] apart."""
         g = self.gravity
-        if PLAUSIBLE_FORCE[0] * g <= specific_force <= PLAUSIBLE_FORCE[1] * g:
-            self.accel_seen = True
+        if not self.accel_seen and _FORCE_LOW * g <= specific_force <= _FORCE_HIGH * g:
+            self.accel_seen = True   # for good: once seen, not judged again
         falling = self.accel_seen and specific_force < FREE_FALL * g   # False for NaN
         if load < self.min_load and not falling:   # False for NaN
             if self._unloaded_since is None:
@@ -141,37 +153,51 @@ class LiftDetector:
                                                  1e3 * (now - self._unloaded_since)))
         else:
             self._unloaded_since = None
-        if not all(math.isfinite(v) for v in (*torques, *speeds, dt)) or dt <= 0.0:
+        if not (isfinite(tau_l) and isfinite(tau_r) and isfinite(omega_l) and isfinite(omega_r)
+                and isfinite(dt)) or dt <= 0.0:
             self._reset_wheels()
             return None
-        for k in (0, 1):
-            self._impulse[k] += torques[k] * dt / self.inertia
-        impulse = (self._impulse[0], self._impulse[1])
-        omega = (speeds[0], speeds[1])
+        inertia = self.inertia
+        self._impulse_l = imp_l = self._impulse_l + tau_l * dt / inertia
+        self._impulse_r = imp_r = self._impulse_r + tau_r * dt / inertia
+        # One tuple per tick for both windows; its pitch rate serves the still-body rule only.
+        sample = (now, imp_l, imp_r, omega_l, omega_r, pitch_rate)
         hist = self._hist
-        hist.append((now, impulse, omega))
-        while len(hist) > 1 and now - hist[1][0] >= self.window - 1e-9:
+        hist.append(sample)
+        span = self.window - 1e-9
+        while len(hist) > 1 and now - hist[1][0] >= span:
             hist.popleft()
-        still = self._still_body(now, impulse, omega, pitch_rate, height)
-        t0, imp0, w0 = hist[0]
-        if now - t0 < self.window - 1e-9 and not still:
+        still = self._still_body(now, sample, pitch_rate, height)
+        t0, imp0_l, imp0_r, w0_l, w0_r, _ = hist[0]
+        young = now - t0 < span
+        if young and not still:
             return None
-        free = []
-        for k in (0, 1):
-            d_free = self._impulse[k] - imp0[k]
-            d_omega = speeds[k] - w0[k]
-            if abs(d_free) < self.min_dv or now - t0 < self.window - 1e-9:
-                self.ratios[k] = math.nan
-            else:
-                self.ratios[k] = d_omega / d_free
-            if (self.ratios[k] >= self.ratio or still) and not falling:
-                if self._free_since[k] is None:
-                    self._free_since[k] = now
-            else:
-                self._free_since[k] = None
-            if self._free_since[k] is not None:
-                free.append(k)
-        since = [now - self._free_since[k] for k in free]
+        ratio, min_dv, ratios = self.ratio, self.min_dv, self.ratios
+        d_free = imp_l - imp0_l
+        # |d_free| < min_dv (False for NaN), or the window not yet full: no ratio
+        r = NAN if abs(d_free) < min_dv or young else (omega_l - w0_l) / d_free
+        ratios[0] = r
+        if (r >= ratio or still) and not falling:
+            if self._free_l is None:
+                self._free_l = now
+        else:
+            self._free_l = None
+        d_free = imp_r - imp0_r
+        r = NAN if abs(d_free) < min_dv or young else (omega_r - w0_r) / d_free
+        ratios[1] = r
+        if (r >= ratio or still) and not falling:
+            if self._free_r is None:
+                self._free_r = now
+        else:
+            self._free_r = None
+        if self._free_l is None and self._free_r is None:
+            return None   # no wheel free (on the ground: nearly every tick)
+        return self._free_reason(now, still)
+
+    def _free_reason(self, now: float, still: bool) -> Optional[str]:
+        """With a wheel free: the fault's reason once free long enough, else None."""
+        free = [k for k, since in enumerate((self._free_l, self._free_r)) if since is not None]
+        since = [now - (self._free_l, self._free_r)[k] for k in free]
         if not (len(free) == 2 and min(since) >= self.free_time - 1e-9) \
                 and not any(t >= 3.0 * self.free_time - 1e-9 for t in since):
             return None
@@ -187,32 +213,38 @@ class LiftDetector:
                     ', '.join('%.2f' % self.ratios[k] for k in free), self.ratio,
                     1e3 * self.window, 1e3 * max(since)))
 
-    def _still_body(self, now: float, impulse: Tuple[float, float],
-                    omega: Tuple[float, float], pitch_rate: float, height: float) -> bool:
+    def _still_body(self, now: float, sample: Tuple[float, float, float, float, float, float],
+                    pitch_rate: float, height: float) -> bool:
         """
         Judge the still-body rule over ``still_window``: both wheels free, the body still.
 
+        sample: this tick's (time, impulse left, right, omega left, right, pitch rate).
         Returns True when both wheels changed speed as free wheels would (d_free >=
         still_min_dv) while the pitch rate changed by at most still_ratio of (r_w / l) |mean
         d_omega| (see the module docstring).
         """
         still = self._still
-        if not (math.isfinite(pitch_rate) and math.isfinite(height) and height > 0.0):
+        if not (isfinite(pitch_rate) and isfinite(height) and height > 0.0):
             still.clear()
             self.still_share = math.nan
             return False
-        still.append((now, impulse, omega, pitch_rate))
-        while len(still) > 1 and now - still[1][0] >= self.still_window - 1e-9:
+        still.append(sample)
+        span = self.still_window - 1e-9
+        while len(still) > 1 and now - still[1][0] >= span:
             still.popleft()
-        t0, imp0, w0, q0 = still[0]
+        t0, imp0_l, imp0_r, w0_l, w0_r, q0 = still[0]
         self.still_share = math.nan
-        if now - t0 < self.still_window - 1e-9:
+        if now - t0 < span:
             return False
-        for k in (0, 1):
-            d_free = impulse[k] - imp0[k]
-            if abs(d_free) < self.still_min_dv or (omega[k] - w0[k]) / d_free < self.ratio:
-                return False
-        d_omega = 0.5 * (omega[0] - w0[0] + omega[1] - w0[1])
+        _, imp_l, imp_r, omega_l, omega_r, _ = sample
+        min_dv, ratio = self.still_min_dv, self.ratio
+        d_free = imp_l - imp0_l
+        if abs(d_free) < min_dv or (omega_l - w0_l) / d_free < ratio:
+            return False
+        d_free = imp_r - imp0_r
+        if abs(d_free) < min_dv or (omega_r - w0_r) / d_free < ratio:
+            return False
+        d_omega = 0.5 * (omega_l - w0_l + omega_r - w0_r)
         ground = self.wheel_radius / height * abs(d_omega)
         self.still_share = abs(pitch_rate - q0) / ground
         return self.still_share <= self.still_ratio

@@ -41,6 +41,7 @@ its samples through a moment where it does not (the fit of a whole window is wha
 """
 from collections import deque
 import math
+from math import isfinite
 from typing import Deque, Optional, Tuple
 
 from .model import theta_ddot_free_and_driven
@@ -112,7 +113,6 @@ class ResponseCheck:
         torque to the next's (the IMU and the loop are not in step on a robot), None: every
         tick has one. A non-finite input restarts the window.
         """
-        isfinite = math.isfinite
         if not (isfinite(theta) and isfinite(theta_dot) and isfinite(u) and isfinite(l)
                 and isfinite(dt)) or dt <= 0.0 or l <= 0.0:
             self.reset()
@@ -120,63 +120,70 @@ class ResponseCheck:
         p = self.params
         free, driven = theta_ddot_free_and_driven(theta, theta_dot, u, l, p.body_mass,
                                                   p.wheel_mass, p.gravity)
-        self._x += dt * (driven - free)
-        self._free += dt * free
+        # The terms since the newest sample, in locals: stored only where no new one came.
+        x = self._x + dt * (driven - free)
+        free_sum = self._free + dt * free
         if sample is not None and sample == self._sample:
+            self._x, self._free = x, free_sum
             self._span += dt
             return None   # no new measurement: the model's terms wait for it
         self._sample = sample
         previous, self._theta_dot = self._theta_dot, theta_dot
-        x, y = self._x, theta_dot - (theta_dot if previous is None else previous) - self._free
+        y = theta_dot - (theta_dot if previous is None else previous) - free_sum
         w = self._span + dt   # the time since the previous sample [s]
         self._x = self._free = self._span = 0.0
         if previous is None:
             return None
         samples, sums = self._samples, self._sums
         samples.append((now, x, y, w))
-        sums[0] += x * x
-        sums[1] += x * y
-        sums[2] += x * w
-        sums[3] += w * y
-        sums[4] += w * w
+        # The sums in locals, in the same order of operations as one by one in the list.
+        sxx, sxy, sxw, swy, sww = sums
+        sxx += x * x
+        sxy += x * y
+        sxw += x * w
+        swy += w * y
+        sww += w * w
         span = self.window - 1e-9
         while now - samples[0][0] >= span:
             _, xo, yo, wo = samples.popleft()
-            sums[0] -= xo * xo
-            sums[1] -= xo * yo
-            sums[2] -= xo * wo
-            sums[3] -= wo * yo
-            sums[4] -= wo * wo
+            sxx -= xo * xo
+            sxy -= xo * yo
+            sxw -= xo * wo
+            swy -= wo * yo
+            sww -= wo * wo
+        sums[0], sums[1], sums[2], sums[3], sums[4] = sxx, sxy, sxw, swy, sww
         self._added += 1
         if self._added >= REFRESH:
             self._added = 0
-            self._resum()
+            self._resum()   # for the next ticks: this one judges on the running sums
         if not judge:
             return None
         if now - samples[0][0] < 0.5 * self.window - 1.5 * dt:
             return None   # too few ticks yet (after arming): half a window at least
         # y = k x + c w by least squares: c w is the residual's slow part over each
         # sample's time w (constant c: a plain intercept where the samples come evenly).
-        sxx, sxy, sxw, swy, sww = sums
         spread = sxx - sxw * sxw / sww   # x's part that w does not explain
-        self.excitation = math.sqrt(max(spread, 0.0))
-        if self.excitation < self.min_effect:
+        # sqrt(max(spread, 0.0)) without the call: max keeps spread unless 0.0 > spread
+        self.excitation = excitation = 0.0 if spread < 0.0 else math.sqrt(spread)
+        if excitation < self.min_effect:
             self.k = math.nan
             return None   # too little change of torque: the time neither grows nor clears
-        self.k = (sxy - sxw * swy / sww) / spread
-        if self.k >= self.gain:
-            self.wrong_time = max(0.0, self.wrong_time - w)
+        self.k = k = (sxy - sxw * swy / sww) / spread
+        if k >= self.gain:
+            wrong = self.wrong_time - w
+            self.wrong_time = wrong if wrong > 0.0 else 0.0   # max(0.0, wrong), NaN: 0.0
             return None
         if self.wrong_time == 0.0:
-            self._k_min = self.k
+            self._k_min = k
         self.wrong_time += w   # the time since the previous sample: ticks without one count
-        self._k_min = min(self._k_min, self.k)
+        if k < self._k_min:   # min(k_min, k)
+            self._k_min = k
         if self.wrong_time < self.hold - 1e-9:
             return None
         return ('the pitch answers the wheel torque with the wrong sign: %.2f times what model '
                 '(1) predicts (down to %.2f) for %.0f ms; check imu_mounting_rpy (the IMU '
                 'turned?) and can.left_direction / can.right_direction'
-                % (self.k, self._k_min, 1e3 * self.wrong_time))
+                % (k, self._k_min, 1e3 * self.wrong_time))
 
     def _resum(self) -> None:
         """Sum the fit's terms over the window afresh."""

@@ -28,7 +28,8 @@ yaw rate* to zero while the robot keeps balancing.
 from dataclasses import dataclass
 import enum
 import math
-from typing import Dict, Mapping, NamedTuple, Optional, Tuple
+from math import isfinite
+from typing import Dict, Iterable, Mapping, NamedTuple, Optional, Sequence, Tuple
 
 IMU_STALE = 'imu_stale'
 JOINT_STATES_STALE = 'joint_states_stale'
@@ -183,8 +184,12 @@ class Mode(enum.IntEnum):
     SITTING = 4
 
 
+#: The modes by plain names for the tick's hot path: ``Mode.BALANCING`` looks the member up
+#: through the enum's class on every use, some ten times slower than a module name.
+DISARMED, BALANCING, FAULT, HOMING, SITTING = (Mode.DISARMED, Mode.BALANCING, Mode.FAULT,
+                                               Mode.HOMING, Mode.SITTING)
 #: Modes in which the motors are commanded (and must answer).
-COMMANDING = (Mode.BALANCING, Mode.HOMING, Mode.SITTING)
+COMMANDING = (BALANCING, HOMING, SITTING)
 
 
 @dataclass
@@ -261,6 +266,8 @@ class SensorSnapshot:
 
 
 _NO_FAULTS: Tuple[Fault, ...] = ()
+#: The motors' reply times as ``_check`` reads them: groups of (motor ID, time [s] or None).
+ReplyTimes = Sequence[Iterable[Tuple[int, Optional[float]]]]
 
 
 class SafetySupervisor:
@@ -289,7 +296,8 @@ class SafetySupervisor:
     @property
     def torque_allowed(self) -> bool:
         """Return True while the controller's wheel torques go out (BALANCING, SITTING)."""
-        return self._mode is Mode.BALANCING or self._mode is Mode.SITTING
+        mode = self._mode
+        return mode is BALANCING or mode is SITTING
 
     @property
     def faults(self) -> Tuple[Fault, ...]:
@@ -304,61 +312,94 @@ class SafetySupervisor:
     def check(self, now: float, s: SensorSnapshot,
               motor_reply_times: Mapping[int, Optional[float]]) -> Tuple[Fault, ...]:
         """Return the fault conditions present at time ``now`` [s] (empty tuple: none)."""
+        return self._check(now, s, self._replies(motor_reply_times))
+
+    def _replies(self, motor_reply_times: Mapping[int, Optional[float]]) -> ReplyTimes:
+        """Return ``motor_reply_times`` as ``_check`` takes them (nothing while not commanding)."""
+        if self._commanding_since is None:
+            return ()
+        get = motor_reply_times.get
+        return ([(i, get(i)) for i in self.motor_ids],)
+
+    def _check(self, now: float, s: SensorSnapshot, replies: ReplyTimes) -> Tuple[Fault, ...]:
+        """``check`` with the reply times as ``update_replies`` takes them."""
         lim = self.limits
         found = None
-        if s.imu_time is None or now - s.imu_time > lim.imu_timeout:
-            found = [Fault(IMU_STALE, 'no IMU sample yet' if s.imu_time is None else
+        imu_time, joint_time = s.imu_time, s.joint_time
+        if imu_time is None or now - imu_time > lim.imu_timeout:
+            found = [Fault(IMU_STALE, 'no IMU sample yet' if imu_time is None else
                            'IMU silent for %.3f s (imu_timeout %.3f s)'
-                           % (now - s.imu_time, lim.imu_timeout), now)]
-        if s.joint_time is None or now - s.joint_time > lim.joint_state_timeout:
+                           % (now - imu_time, lim.imu_timeout), now)]
+        if joint_time is None or now - joint_time > lim.joint_state_timeout:
             found = found or []
-            found.append(Fault(JOINT_STATES_STALE, 'no joint state yet' if s.joint_time is None
+            found.append(Fault(JOINT_STATES_STALE, 'no joint state yet' if joint_time is None
                                else 'joint states silent for %.3f s (joint_state_timeout %.3f s)'
-                               % (now - s.joint_time, lim.joint_state_timeout), now))
-        if s.imu_time is None or s.joint_time is None:
+                               % (now - joint_time, lim.joint_state_timeout), now))
+        theta, theta_dot, roll = s.theta, s.theta_dot, s.roll
+        if imu_time is None or joint_time is None:
             pass  # nothing measured yet: reported as stale above
-        elif not s.finite():
-            found = found or []
-            found.append(Fault(NON_FINITE, 'non-finite measurement: theta %r theta_dot %r '
-                               'wheel_vel %r %r l %r' % (s.theta, s.theta_dot, s.wheel_vel_left,
-                                                         s.wheel_vel_right, s.l), now))
-        elif not lim.plausible(s):
-            # Finite but impossible: one such sample would throw odometry and the observer off.
-            found = found or []
-            found.append(Fault(IMPLAUSIBLE, 'implausible measurement: theta_dot %.4g rad/s '
-                               '(max %.4g), wheel_vel %.4g %.4g rad/s (max %.4g)'
-                               % (s.theta_dot, lim.max_pitch_rate, s.wheel_vel_left,
-                                  s.wheel_vel_right, lim.max_wheel_velocity), now))
-        if s.imu_time is not None and abs(s.theta) > lim.fall_angle:  # False for NaN
-            found = found or []
-            found.append(Fault(FALL, '|theta| %.1f deg > fall_angle %.1f deg'
-                               % (math.degrees(abs(s.theta)), math.degrees(lim.fall_angle)), now))
-        if s.imu_time is not None and abs(s.roll) > lim.fall_roll_angle:  # False for NaN
-            found = found or []
-            found.append(Fault(ROLL, '|roll| %.1f deg > fall_roll_angle %.1f deg (lying on a '
-                               'side?)' % (math.degrees(abs(s.roll)),
-                                           math.degrees(lim.fall_roll_angle)), now))
-        if self._commanding_since is not None:
-            for motor_id in self.motor_ids:
-                last = motor_reply_times.get(motor_id)
-                since = self._commanding_since if last is None else max(last,
-                                                                        self._commanding_since)
-                if now - since > lim.motor_timeout:
-                    found = found or []
-                    found.append(Fault(MOTOR_SILENT, 'motor %d silent for %.3f s '
-                                       '(motor_timeout %.3f s)' % (motor_id, now - since,
-                                                                   lim.motor_timeout), now))
-        if self._send_error is not None and self._commanding_since is not None:
-            found = found or []
-            found.append(Fault(CAN_SEND, 'CAN send failed: %s' % self._send_error, now))
+        else:
+            w_l, w_r = s.wheel_vel_left, s.wheel_vel_right
+            max_rate, max_w = lim.max_pitch_rate, lim.max_wheel_velocity
+            # s.finite() and lim.plausible(s) without the calls
+            if not (isfinite(theta) and isfinite(theta_dot) and isfinite(w_l) and isfinite(w_r)
+                    and isfinite(s.l)):
+                found = found or []
+                found.append(Fault(NON_FINITE, 'non-finite measurement: theta %r theta_dot %r '
+                                   'wheel_vel %r %r l %r' % (theta, theta_dot, w_l, w_r, s.l),
+                                   now))
+            elif not (abs(theta_dot) <= max_rate and abs(w_l) <= max_w and abs(w_r) <= max_w):
+                # Finite but impossible: one such sample would throw odometry and the
+                # observer off.
+                found = found or []
+                found.append(Fault(IMPLAUSIBLE, 'implausible measurement: theta_dot %.4g rad/s '
+                                   '(max %.4g), wheel_vel %.4g %.4g rad/s (max %.4g)'
+                                   % (theta_dot, max_rate, w_l, w_r, max_w), now))
+        if imu_time is not None:
+            fall = lim.fall_angle
+            if abs(theta) > fall:  # False for NaN
+                found = found or []
+                found.append(Fault(FALL, '|theta| %.1f deg > fall_angle %.1f deg'
+                                   % (math.degrees(abs(theta)), math.degrees(fall)), now))
+            fall = lim.fall_roll_angle
+            if abs(roll) > fall:
+                found = found or []
+                found.append(Fault(ROLL, '|roll| %.1f deg > fall_roll_angle %.1f deg (lying on '
+                                   'a side?)' % (math.degrees(abs(roll)), math.degrees(fall)),
+                                   now))
+        commanding_since = self._commanding_since
+        if commanding_since is not None:
+            timeout = lim.motor_timeout
+            for motors in replies:
+                for motor_id, last in motors:
+                    if last is not None and now - last <= timeout:
+                        continue   # answered lately: since >= last is within the timeout too
+                    since = commanding_since if last is None else max(last, commanding_since)
+                    if now - since > timeout:
+                        found = found or []
+                        found.append(Fault(MOTOR_SILENT, 'motor %d silent for %.3f s '
+                                           '(motor_timeout %.3f s)' % (motor_id, now - since,
+                                                                       timeout), now))
+            if self._send_error is not None:
+                found = found or []
+                found.append(Fault(CAN_SEND, 'CAN send failed: %s' % self._send_error, now))
         return _NO_FAULTS if found is None else tuple(found)
 
     def update(self, now: float, s: SensorSnapshot,
                motor_reply_times: Mapping[int, Optional[float]]) -> Mode:
         """Run the checks of one control tick; a commanding mode goes to FAULT on any."""
-        self._conditions = self.check(now, s, motor_reply_times)
-        if self._conditions and self._mode in COMMANDING:
-            self._enter_fault(self._conditions)
+        return self.update_replies(now, s, self._replies(motor_reply_times))
+
+    def update_replies(self, now: float, s: SensorSnapshot, replies: ReplyTimes) -> Mode:
+        """
+        ``update`` with the reply times as groups of (motor ID, time [s] or None) pairs.
+
+        The groups' pairs in turn are every motor of ``motor_ids``, in order: the tick passes
+        its motor sets' live ``reply_times.items()`` (no merged map, no lookups per tick).
+        """
+        self._conditions = conditions = self._check(now, s, replies)
+        if conditions and self._mode in COMMANDING:
+            self._enter_fault(conditions)
         return self._mode
 
     def pose_problem(self, s: SensorSnapshot) -> Optional[str]:
