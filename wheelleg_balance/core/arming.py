@@ -82,7 +82,8 @@ class ArmingSupervisor:
         # of the map sensing.reply_times() merges anew (None: that one, IDs shared by a set).
         wheels = sensing.motors.reply_times
         hips = sensing.hips.reply_times if sensing.hips is not None else {}
-        self._replies = (wheels.items(), hips.items()) if not wheels.keys() & hips.keys() \
+        # (The maps, not their items() views: a loop is deep-copied, views cannot be.)
+        self._replies = (wheels, hips) if not wheels.keys() & hips.keys() \
             and list(wheels) + list(hips) == list(self.safety.motor_ids) else None
         self.configure(cfg)
 
@@ -268,7 +269,8 @@ class ArmingSupervisor:
         sup = self.safety
         before = sup._mode
         if self._replies is not None:
-            sup.update_replies(now, s, self._replies)
+            wheels, hips = self._replies
+            sup.update_replies(now, s, (wheels.items(), hips.items()))
         else:
             sup.update(now, s, self.sensing.reply_times())
         foreign = self.sensing.new_foreign_command()
