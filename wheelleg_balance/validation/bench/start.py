@@ -33,6 +33,7 @@ import signal
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from typing import Dict, List, NamedTuple, Optional, Sequence
 
@@ -148,8 +149,10 @@ def time_start(node: NodeCommand, args: Sequence[str], timeout: float = TIMEOUT_
     seconds of each process by then. RuntimeError with the output if it never gets ready.
     """
     wall0, t0 = time.time(), time.monotonic()
+    # From a folder of no package: trees older than 8d01ec0 start their children with
+    # ``python -m`` (the working folder first on the path), which would run this one's.
     proc = subprocess.Popen(node.command + list(args), env=node.env, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT)
+                            stderr=subprocess.STDOUT, cwd=tempfile.gettempdir())
     lines: List[str] = []
     pending = b''
     try:
