@@ -246,6 +246,18 @@ def _params(name, node):
     return flatten_yaml(doc[node]['ros__parameters'])
 
 
+def test_the_raspberry_pi_overlay_sets_valid_real_time_options_and_nothing_else():
+    """config/realtime_pi4.yaml on top of config/balance.yaml: the loop's real-time options."""
+    base = _params('balance.yaml', 'balance_node')
+    overlay = _params('realtime_pi4.yaml', 'balance_node')
+    assert set(overlay) == {'realtime_priority', 'realtime_cpu', 'lock_memory'}
+    cfg = from_flat(BalanceConfig, {**base, **overlay})
+    assert check(cfg) == []
+    assert cfg.loop.realtime_priority == 80 and cfg.loop.realtime_cpu == 3
+    assert cfg.loop.lock_memory is True
+    assert cfg.can == from_flat(BalanceConfig, base).can   # the robot's wiring untouched
+
+
 def test_the_sim_files_wire_balance_node_to_the_simulated_robot():
     """config/balance_sim.yaml against config/sim.yaml: one bus, the same motors, hips driven."""
     sim = from_flat(SimConfig, _params('sim.yaml', 'sim_node'))
