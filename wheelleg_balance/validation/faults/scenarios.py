@@ -51,11 +51,20 @@ def _on_armed_rig(context, out: Outcome, run: Callable[[Rig], None], **rig_args)
         if out.check('armed', rig.arm()):
             # The rig leans the robot, so balancing means torque: let the first commands reach
             # the bus before the fault (a fault injected within a tick of arming found only the
-            # enter-motor-mode frames and failed the "torque before the fault" check).
-            wait_for(lambda: _torque_before(rig.motors, time.time()), 1.0)
+            # enter-motor-mode frames and failed the "torque before the fault" check), and
+            # before the newest samples: a timeout fault counts from the last sample, and one
+            # published just before the first torque frame left no torque before the fault.
+            wait_for(lambda: _torque_before(rig.motors, _newest_samples(rig)), 1.0)
             out.injected()   # each run(rig) injects its fault first
             run(rig)
     return out
+
+
+def _newest_samples(rig: Rig) -> float:
+    """Return the time [s] of the older of the rig's newest IMU and joint samples (now if none)."""
+    robot = rig.robot
+    times = [t for t in (robot.last_imu_time, robot.last_clean_joint_time) if t is not None]
+    return min(times) if times else time.time()
 
 
 def _timeout_fault(context, out: Outcome, stop: Callable[[Rig], None],
