@@ -300,9 +300,34 @@ class Rig:
         self._spinning = Spinning(context, (self.node, self.robot))
         self.robot.start()
 
+    def wait_ready(self, timeout=10.0):
+        """
+        Wait for balance_node's first state: its processes started and discovered.
+
+        A check that counts from the rig's creation also counts the start of the control and
+        sensor processes and DDS discovery, which on a loaded CI machine took over 3 s once
+        (2026-12-07: test_joint_states_give_height_and_odometry); they are timed elsewhere
+        (benchmark --parts start).
+        """
+        assert self.robot.wait_state(lambda s: True, timeout), 'no state topic'
+
+    def wait_sensors(self, timeout=10.0):
+        """
+        Wait until the robot's joint states have reached the node's tick (the intake's samples).
+
+        DDS discovery between this process and the intake process sometimes missed the first
+        announcements and matched only at the next one, about 3 s later: in 10 runs here
+        (2026-12-07) one had no sample in the 3 s after the ready state, two waited about 3 s.
+        A check of what the samples do counts from their arrival, not from the discovery.
+        """
+        self.wait_ready(timeout)
+        assert wait_for(lambda: math.isfinite(
+            (self.node.status.get('sensors') or {}).get('joint_age_s', math.inf)), timeout), \
+            'no joint states reached the tick in %.0f s' % timeout
+
     def arm_and_balance(self):
         assert wait_for(lambda: self.robot.arm_client.service_is_ready(), 5.0)
-        assert self.robot.wait_state(lambda s: True, 5.0), 'no state topic'
+        self.wait_ready()
         # Sensors must have reached the node before arming can succeed.
         assert wait_for(lambda: self.robot.arm().success, 5.0, step=0.1)
         assert self.robot.wait_state(lambda s: s[IDX['mode']] == MODE['BALANCING'], 2.0)
@@ -512,7 +537,11 @@ def test_joint_states_give_height_and_odometry(make_rig, context):
     r.robot.leg_q = (q_front, q_rear)
     # Right joint velocity negative with right_wheel_direction -1: both wheels roll forward.
     r.robot.wheel_vel = (2.0, -2.0)
-    assert r.robot.wait_state(lambda s: s[IDX['l']] == pytest.approx(0.55, abs=1e-6), 3.0)
+    r.wait_sensors()
+    assert r.robot.wait_state(lambda s: s[IDX['l']] == pytest.approx(0.55, abs=1e-6), 3.0), \
+        'l %s after %d states; sensors %s; intake %s' % (
+            r.robot.last_state()[IDX['l']], len(r.robot.states), r.node.status.get('sensors'),
+            r.node.status.get('intake_ready'))
     assert wait_for(lambda: len(odoms) > 10 and odoms[-1].pose.pose.position.x > 0.05, 5.0)
     odom = odoms[-1]
     # REP 105: odom -> base_footprint (base_link sits above it, pitched).
