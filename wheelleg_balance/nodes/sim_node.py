@@ -110,7 +110,8 @@ class SimNode(Node):
         self.sim = RobotSim(
             d_offset=cfg.imu_pitch_offset, height=cfg.height,
             pushes=[Push(*pushes[i:i + 4]) for i in range(0, len(pushes), 4)],
-            bumps=cfg.bumps, bump_height=cfg.bump_height, slope=slope, legs='motors')
+            bumps=cfg.bumps, bump_height=cfg.bump_height, slope=slope, legs='motors',
+            body=cfg.robot)
         self.sim.reset(cfg.initial_pose, pitch=cfg.initial_pitch, lift=cfg.stand_lift)
 
         c, legs, fw = cfg.can, cfg.legs, cfg.can.firmware

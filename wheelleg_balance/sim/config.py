@@ -126,6 +126,42 @@ class HandConfig:
 
 
 @dataclass(frozen=True)
+class RobotBodyConfig:
+    """
+    The simulated robot's physical quantities (``robot.*``): defaults are sim/robot.xml's.
+
+    RobotSim changes the MuJoCo model through mjSpec with the ones that differ from the defaults
+    (docs/simulation.md, "A robot that is not the default"); identification fits them
+    (docs/identification.md). Per wheel: wheel_mass, wheel_inertia, wheel_damping.
+    """
+
+    body_mass: float = param(11.0, 'the body without the legs and wheels [kg]', 1.0, 100.0,
+                             read_only=RO)
+    body_com: List[float] = param([0.0, 0.05], "the body's centre of mass [x, z] in base_link "
+                                  '(x forward, z up from the hip midpoint) [m]', -0.5, 0.5,
+                                  read_only=RO, length=2)
+    body_inertia: float = param(0.0763, "the body's inertia about the pitch axis through its "
+                                'centre of mass [kg m^2]', 0.001, 10.0, read_only=RO)
+    wheel_mass: float = param(1.5, 'one wheel [kg]', 0.1, 20.0, read_only=RO)
+    wheel_radius: float = param(0.1, 'wheel radius [m] (the contact geometry too)', 0.03, 0.3,
+                                read_only=RO)
+    wheel_inertia: float = param(0.0075, 'one wheel about its axle [kg m^2] (default: the '
+                                 '1.5 kg, 0.1 m disc)', 1e-5, 1.0, read_only=RO)
+    wheel_damping: float = param(0.0, "viscous friction of each wheel's bearing [N m s/rad]",
+                                 0.0, 5.0, read_only=RO)
+    motor_delay: float = param(0.0, "the motors' command latency: a torque takes effect this "
+                               'long after it is commanded [s]', 0.0, 0.05, read_only=RO)
+
+    def problems(self) -> List[str]:
+        """Rules across fields: a wheel's inertia is at most its mass at the rim, m r^2."""
+        rim = self.wheel_mass * self.wheel_radius ** 2
+        if self.wheel_inertia > rim:
+            return ['robot.wheel_inertia %.4g kg m^2 above wheel_mass wheel_radius^2 = %.4g kg '
+                    'm^2 (all the mass at the rim)' % (self.wheel_inertia, rim)]
+        return []
+
+
+@dataclass(frozen=True)
 class SimConfig:
     """Everything sim_node is configured with (see the module docstring)."""
 
@@ -181,6 +217,7 @@ class SimConfig:
     legs: LegsConfig = section(LegsConfig, 'legs')
     fault: FaultConfig = section(FaultConfig, 'fault')
     hand: HandConfig = section(HandConfig, 'hand')
+    robot: RobotBodyConfig = section(RobotBodyConfig, 'robot')
 
     @property
     def second_bus(self) -> bool:

@@ -26,7 +26,9 @@ from typing import Dict, Iterable, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from .config import RobotBodyConfig
 from .layout import HIP_TORQUE_LIMIT, LEG_JOINTS, LEG_MODES, WHEEL_JOINTS, WHEEL_TORQUE_LIMIT
+from .variant import apply_body, CommandDelay
 from ..core.kinematics import FiveBarLeg
 from ..optional import require
 
@@ -35,7 +37,7 @@ mujoco = require('mujoco', 'the simulated robot (sim_node, main_job, the fault s
 
 MODEL_PATH = pathlib.Path(__file__).with_name('robot.xml')
 
-#: Wheel radius r_w [m] and track d_w [m] of robot.xml (Table I).
+#: Wheel radius r_w [m] and track d_w [m] of robot.xml (Table I): the default robot's.
 WHEEL_RADIUS = 0.1
 WHEEL_SEPARATION = 0.47
 #: Actuator groups of robot.xml: hip torque motors and the transitional hip servos.
@@ -97,20 +99,30 @@ class RobotSim:
     height: initial body height l [m] (COM above the wheel axle; with legs='servo' the servos'
     height); pushes: Push events; bumps: x positions [m] of bumps of height bump_height [m];
     slope: a Slope or None; leg: the five-bar geometry that robot.xml is built with
-    (FiveBarLeg defaults); legs: 'servo' (default) or 'motors' (LEG_MODES).
+    (FiveBarLeg defaults); legs: 'servo' (default) or 'motors' (LEG_MODES); body: the robot's
+    physical quantities (sim_node's ``robot.*``, sim/config.RobotBodyConfig; None: robot.xml's),
+    among them the motors' command latency (sim/variant.py).
     """
 
     def __init__(self, d_offset: float = 0.0, height: float = 0.37,
                  pushes: Iterable[Push] = (), bumps: Iterable[float] = (),
                  bump_height: float = 0.02, slope: Optional[Slope] = None,
-                 leg: Optional[FiveBarLeg] = None, legs: str = 'servo'):
+                 leg: Optional[FiveBarLeg] = None, legs: str = 'servo',
+                 body: Optional[RobotBodyConfig] = None):
         if legs not in LEG_MODES:
             raise ValueError('legs must be one of %s' % ', '.join(LEG_MODES))
         self.legs = legs
         self.leg = leg or FiveBarLeg()
-        self.model = self._build_model(list(bumps), bump_height, slope)
+        self.body = body if body is not None else RobotBodyConfig()
+        #: Wheel radius r_w [m] of this robot.
+        self.wheel_radius = float(self.body.wheel_radius)
+        self.model = self._build_model(list(bumps), bump_height, slope, self.body)
         self.data = mujoco.MjData(self.model)
         self.timestep = float(self.model.opt.timestep)
+        # The commands of the six motors (wheels, hips) and their latency (None: none).
+        self._commanded = [0.0] * 6
+        self._delay = CommandDelay(self.body.motor_delay, self.timestep, 6) \
+            if self.body.motor_delay > 0.0 else None
         m = self.model
         self._base = m.body('base_link').id
         self._wheels = [m.body(n).id for n in ('left_wheel', 'right_wheel')]
@@ -145,9 +157,10 @@ class RobotSim:
     # ---- model ------------------------------------------------------------------------------
 
     @staticmethod
-    def _build_model(bumps: List[float], bump_height: float,
-                     slope: Optional[Slope]) -> mujoco.MjModel:
+    def _build_model(bumps: List[float], bump_height: float, slope: Optional[Slope],
+                     body: RobotBodyConfig) -> mujoco.MjModel:
         spec = mujoco.MjSpec.from_file(str(MODEL_PATH))
+        apply_body(spec, body)
         for i, x in enumerate(bumps):
             # A capsule across the floor, half buried: it sticks out bump_height.
             g = spec.worldbody.add_geom()
@@ -223,7 +236,7 @@ class RobotSim:
         mujoco.mj_kinematics(m, d)
         axle = 0.5 * (d.xpos[self._wheels[0]] + d.xpos[self._wheels[1]])
         # Sink the wheels by their resting depth in the soft contact: no drop at the start.
-        d.qpos[0:3] = np.array([x, 0.0, WHEEL_RADIUS - CONTACT_DEPTH]) - axle
+        d.qpos[0:3] = np.array([x, 0.0, self.wheel_radius - CONTACT_DEPTH]) - axle
         d.ctrl[:] = 0.0
         self._apply_height(l0)
         mujoco.mj_forward(m, d)
@@ -272,6 +285,9 @@ class RobotSim:
         (as if the hip motors had held them): time 0 starts settled, hip torques zero.
         """
         self.release()
+        self._commanded = [0.0] * 6
+        if self._delay is not None:
+            self._delay.clear()
         if pose == 'tail':
             self.place(self.tail_rest_pitch() + 1e-3, x)
             self.data.time = 0.0
@@ -379,17 +395,29 @@ class RobotSim:
         in LEG_JOINTS order and FiveBarLeg's convention, clamped to +-HIP_TORQUE_LIMIT; None
         keeps the last ones; ignored with legs='servo'. The torques are held over dt: for a
         motor's impedance law evaluated at every physics step, step one timestep at a time
-        (sim/robot_motors.py does). Pushes are applied every step.
+        (sim/robot_motors.py does). Pushes are applied every step. With a motor delay the
+        torques act that much later (sim/variant.CommandDelay).
         """
         m, d = self.model, self.data
         n = 1 if dt is None else max(1, int(round(dt / self.timestep)))
-        d.ctrl[self._wheel_act[0]] = _clamp_torque(tau_left)
-        d.ctrl[self._wheel_act[1]] = _clamp_torque(tau_right)
-        if hip_torques is not None and self.legs == 'motors':
-            for a, tau in zip(self._leg_act, hip_torques):
-                d.ctrl[a] = _clamp_torque(tau, HIP_TORQUE_LIMIT)
+        cmd = self._commanded
+        cmd[0] = _clamp_torque(tau_left)
+        cmd[1] = _clamp_torque(tau_right)
+        motors = self._wheel_act
+        if self.legs == 'motors':
+            motors = self._wheel_act + self._leg_act
+            if hip_torques is not None:
+                cmd[2:] = [_clamp_torque(tau, HIP_TORQUE_LIMIT) for tau in hip_torques]
+        if self._delay is None:
+            d.ctrl[motors[0]], d.ctrl[motors[1]] = cmd[0], cmd[1]
+            if hip_torques is not None and self.legs == 'motors':
+                for a, tau in zip(self._leg_act, cmd[2:]):
+                    d.ctrl[a] = tau
         base_force = d.xfrc_applied[self._base]
         for _ in range(n):
+            if self._delay is not None:
+                for a, tau in zip(motors, self._delay.push(cmd)):
+                    d.ctrl[a] = tau
             if self.pushes:
                 base_force[0:3] = self.push_force(d.time)
             mujoco.mj_step(m, d)
