@@ -139,6 +139,16 @@ class FiveBarLeg:
         xc, zc = self.axle(q_front, q_rear)
         return xc - self.com_x, self.com_height - zc
 
+    def pose(self, q_front: float, q_rear: float) -> Tuple[float, ...]:
+        """
+        Return the knees and the axle (fx, fz, rx, rz, xc, zc) [m] in the hip-midpoint frame.
+
+        x forward, z up; all NaN when not in_reach. Where the links are (the mass of the
+        legs in identification/fit.py).
+        """
+        pose = self._pose(q_front, q_rear)
+        return (NAN,) * 6 if pose is None else pose
+
     def _pose(self, q_front: float, q_rear: float):
         """Return knees and axle (fx, fz, rx, rz, xc, zc), hip-midpoint frame; None: no reach."""
         return self._solution(q_front, q_rear)[0]
