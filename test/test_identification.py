@@ -10,7 +10,6 @@ import math
 
 import numpy as np
 import pytest
-import yaml
 
 from wheelleg_balance.core.kinematics import FiveBarLeg
 from wheelleg_balance.core.schema import from_flat
@@ -18,6 +17,7 @@ from wheelleg_balance.identification import excite, fit, study
 from wheelleg_balance.identification.params import balance_params, params_yaml
 from wheelleg_balance.identification.records import JOINTS, STATE
 from wheelleg_balance.sim.config import RobotBodyConfig
+import yaml
 
 #: A variant unlike the default: heavier body, larger and heavier wheels with a rim-heavy
 #: inertia, bearing damping and a motor delay.

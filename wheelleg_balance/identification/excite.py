@@ -23,7 +23,7 @@ from typing import Dict, Optional, Sequence
 
 import numpy as np
 
-from .records import IMU, IMU_COLUMNS, JOINTS, joint_columns, Record, SeriesBuilder, STATE
+from .records import IMU, IMU_COLUMNS, joint_columns, JOINTS, Record, SeriesBuilder, STATE
 from ..core.tick_io import STATE_FIELDS
 from ..sim.config import RobotBodyConfig
 from ..sim.layout import LEG_JOINTS, WHEEL_JOINTS

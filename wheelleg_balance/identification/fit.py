@@ -126,7 +126,7 @@ def held_integral(t_cmd: np.ndarray, u_cmd: np.ndarray):
 
 
 def _wheel_columns(rec: Record) -> Tuple[np.ndarray, List[np.ndarray], List[np.ndarray]]:
-    """(t, [left, right] wheel speeds [rad/s], [left, right] commanded torques) on the joints' t."""
+    """Return t, [left, right] wheel speeds [rad/s], [left, right] commanded torques [N m]."""
     js, st = rec[JOINTS], rec[STATE]
     speeds = [js[n + '.velocity'] for n in WHEEL_JOINTS]
     torques = [st['tau_left'], st['tau_right']]
@@ -183,7 +183,7 @@ def fit_stand(rec: Record) -> Dict[str, Estimate]:
 
 
 def _forward_specific_force(imu) -> np.ndarray:
-    """The IMU's specific force along the robot's heading in the horizontal plane [m/s^2]."""
+    """Return the IMU's specific force along the heading, in the horizontal plane [m/s^2]."""
     qx, qy, qz, qw = (imu[n] for n in ('qx', 'qy', 'qz', 'qw'))
     ax, ay, az = imu['ax'], imu['ay'], imu['az']
     # First two rows of the rotation matrix of (w, x, y, z): world = R imu.
@@ -273,7 +273,7 @@ class Pendulum:
 
 
 def _hips(js) -> Tuple[np.ndarray, np.ndarray]:
-    """The hip angles (front, rear) [rad], the two legs' mean (they move together)."""
+    """Return the hip angles (front, rear) [rad], the two legs' mean (they move together)."""
     q = [js[n + '.position'] for n in LEG_JOINTS]
     return 0.5 * (q[0] + q[2]), 0.5 * (q[1] + q[3])
 

@@ -44,6 +44,6 @@ def params_yaml(params: Dict[str, float]) -> str:
     problems = check(from_flat(BalanceConfig, params))
     if problems:
         raise ValueError('; '.join(problems))
-    return '# Fitted by identification (docs/identification.md): load after the robot\'s ' \
+    return "# Fitted by identification (docs/identification.md): load after the robot's " \
         'own file.\n' + yaml.safe_dump({'balance_node': {'ros__parameters': nest(params)}},
                                        sort_keys=True)
