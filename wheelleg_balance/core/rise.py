@@ -1,6 +1,7 @@
 """
-The planned rise: the start-up from the tail as a trajectory of model (1), tracked by a
-time-varying LQR (issue 33, part 1).
+The planned rise: the start-up from the tail as a trajectory of model (1) (issue 33, part 1).
+
+It is tracked by a time-varying LQR.
 
 Why a plan. Pushed up from the tail at rest, the body gains about 1.1 m/s of forward speed
 before it passes upright, whatever the controller (validation/paper/tuning.py
@@ -15,9 +16,12 @@ at rest. ``plan_rise`` finds such a motion:
 - phase B, off it: model (1) at height l (core/model.py), theta >= -``lean_max`` (the
   overshoot the plan allows itself), ending upright at rest: theta = theta_dot = x_dot = u = 0;
 - |u| <= ``force_share`` x 2 tau_max / r_w in both (the rest is the feedback's);
-- cost: the duration plus effort and the force's rate of change (a motion a tracker follows);
-  solved by trapezoidal direct collocation (Betts, "Practical Methods for Optimal Control",
-  2nd ed., sec. 4.6) with scipy.optimize.minimize's SLSQP.
+- cost: the duration plus effort and the force's rate of change (a motion a tracker follows).
+
+It is solved by direct single shooting: the force piecewise linear through a few knots per
+phase, the flight integrated with RK4, the end state and the lean as constraints of
+scipy.optimize.minimize's SLSQP (about 2 s of CPU; a collocation of the same problem with
+finite-difference Jacobians took minutes).
 
 ``tracking_gains`` samples the plan at the control period and solves the discrete
 time-varying LQR about it (the Riccati recursion backwards from the upright hold's stationary
@@ -26,13 +30,17 @@ solution, core/lqr.py's weights), so u = u_ff + K (xi - xi_ref) (the paper's sig
 is the IMU's offset, which the wheels cannot move. After the plan the last gain holds the
 robot at the plan's end until the auto mode's hold takes over (core/pipeline.py).
 
+The IMU offset d is not known at arming (d_hat0), and a tracker of theta~ - d_hat0 would bring
+the body to -d. In flight, model (1)'s pendulum row l theta_ddot = g sin(theta) - cos(theta)
+x_ddot holds whatever the masses, so the gyro and the wheels' speed give d
+(``PlannedRise.offset``), and the tracker uses it from about 0.1 s after the lift-off.
+
 Plans are solved once per model, height and limits, and cached (core/table_cache.py): the
 default configuration's comes with the installed package. ``PlannedRise`` is the per-tick part:
 a table look-up and four multiply-adds.
 """
 from dataclasses import dataclass
 import math
-from typing import Optional
 
 import numpy as np
 
@@ -80,7 +88,7 @@ def _flight_accel(theta, theta_dot, u, l, m, M, g):
 
 
 def _force(t, knots_t, knots_u):
-    """The plan's force at time t [s]: piecewise linear through its knots."""
+    """Return the plan's force [N] at time t [s]: piecewise linear through its knots."""
     return np.interp(t, knots_t, knots_u)
 
 
@@ -116,8 +124,10 @@ def _simulate(p: RobotParams, spec: RiseSpec, z, steps: int = 120):
         a2, b2 = f(t + 0.5 * h, th + 0.5 * h * w, w + 0.5 * h * a1)
         a3, b3 = f(t + 0.5 * h, th + 0.5 * h * (w + 0.5 * h * a1), w + 0.5 * h * a2)
         a4, b4 = f(t + h, th + h * (w + 0.5 * h * a2), w + h * a3)
-        th, w = th + h * (w + h / 6.0 * (a1 + a2 + a3)), w + h / 6.0 * (a1 + 2 * a2 + 2 * a3 + a4)
-        xb, vb = xb + h * (vb + h / 6.0 * (b1 + b2 + b3)), vb + h / 6.0 * (b1 + 2 * b2 + 2 * b3 + b4)
+        th = th + h * (w + h / 6.0 * (a1 + a2 + a3))
+        w = w + h / 6.0 * (a1 + 2 * a2 + 2 * a3 + a4)
+        xb = xb + h * (vb + h / 6.0 * (b1 + b2 + b3))
+        vb = vb + h / 6.0 * (b1 + 2 * b2 + 2 * b3 + b4)
         out.append((t + h, th, w, xb, vb, float(_force(t + h, kb, ub))))
     return np.array(out), n_a
 
@@ -173,7 +183,7 @@ def plan_rise(p: RobotParams, spec: RiseSpec) -> np.ndarray:
                    constraints=[{'type': 'eq', 'fun': end}, {'type': 'ineq', 'fun': path}],
                    options={'maxiter': 300, 'ftol': 1e-10})
     if np.max(np.abs(end(res.x))) > 1e-4 or np.min(path(res.x)) < -1e-5:
-        raise RuntimeError("the rise plan did not converge: %s" % res.message)
+        raise RuntimeError('the rise plan did not converge: %s' % res.message)
     z = np.concatenate([res.x[:2], res.x[2:] * U])
     return _simulate(p, spec, z, steps=400)
 
@@ -269,6 +279,7 @@ class PlannedRise:
     """
 
     def __init__(self, p: RobotParams, spec: RiseSpec, max_error: float = math.radians(8.0)):
+        """Look the plan of ``spec`` up (or solve it once: ``rise_table``)."""
         self.p = p
         self.spec = spec
         #: |pitch - the plan's| beyond which the plan is left [rad] (``off_plan``).
@@ -285,7 +296,7 @@ class PlannedRise:
     def applies(self, theta: float, theta_dot: float, l: float, max_wheel_torque: float,
                 tolerance: float = math.radians(6.0)) -> bool:
         """
-        True when a robot fits the plan: still on the tail, at its height and torque limit.
+        Return True when a robot fits the plan: on the tail, at its height and torque limit.
 
         theta: pitch with the offset estimate removed [rad]; theta_dot [rad/s]; l [m];
         max_wheel_torque: the limit now [N m] (a derated wheel motor does not fit).
@@ -300,7 +311,7 @@ class PlannedRise:
         self._last = None
 
     def stop(self) -> None:
-        """The plan is over (handed over) or not used."""
+        """End the plan (handed over, or not used)."""
         self.running = False
 
     @property
@@ -309,7 +320,7 @@ class PlannedRise:
         return self._k >= len(self.rows)
 
     def off_plan(self, theta: float) -> bool:
-        """True when the pitch theta~ [rad] is more than max_error from this tick's row."""
+        """Return True when the pitch theta~ [rad] is over max_error from this tick's row."""
         r = self.rows[min(self._k, len(self.rows) - 1)]
         return not abs(theta - self._d0 - r[1]) <= self.max_error   # NaN: off the plan
 
@@ -368,10 +379,3 @@ def plan_summary(table: np.ndarray) -> dict:
             'run_up_speed_mps': float(table[k, 4]), 'min_x_m': float(np.min(table[:, 3])),
             'end_x_m': float(table[-1, 3]), 'peak_force_n': float(np.max(np.abs(table[:, 5]))),
             'min_theta_deg': math.degrees(float(np.min(table[:, 1])))}
-
-
-def default_spec(p: RobotParams, max_wheel_torque: float, dt: float,
-                 theta_0: Optional[float] = None) -> RiseSpec:
-    """Return the spec of the rise at height_min (where the robot always rises)."""
-    return RiseSpec(l=p.height_min, theta_0=RiseSpec.theta_0 if theta_0 is None else theta_0,
-                    max_wheel_torque=max_wheel_torque, dt=dt)
