@@ -17,12 +17,17 @@ P = RobotParams()
 SPEC = rise.RiseSpec(l=P.height_min)
 
 
+def planned_core(sc: Scenario, planned: bool = True):
+    """Return the scenario's core with ``auto.planned_rise`` set (off by default)."""
+    core = _build_core(sc)
+    core.set_auto_rules(replace(core.config.auto, planned_rise=planned))
+    return core
+
+
 def start_up(planned: bool = True, **kw):
     """Return (run, core) of a start-up from the tail under ``controller: auto``."""
     sc = Scenario(controller='auto', duration=kw.pop('duration', 6.0), **kw)
-    core = _build_core(sc)
-    if not planned:
-        core.set_auto_rules(replace(core.config.auto, planned_rise=False))
+    core = planned_core(sc, planned)
     return simulate(sc, core), core
 
 
@@ -39,6 +44,7 @@ def test_the_plan_keeps_its_limits_and_ends_upright_at_rest():
     tail = table[:, 10] > 0.5
     lift_off = (M + m) * g * math.tan(SPEC.theta_0)
     assert np.max(table[tail, 5]) <= rise.U_TAIL_MARGIN * lift_off + 1e-6
+    assert np.min(table[tail, 5]) >= -(M + m) * SPEC.run_up_acceleration - 1e-6   # no tip-over
     assert np.min(table[:, 1]) >= -SPEC.lean_max - 1e-4
     end = table[-1]
     assert abs(end[1]) < 1e-3 and abs(end[2]) < 1e-2 and abs(end[4]) < 1e-2 and end[5] == 0.0
@@ -87,14 +93,24 @@ def test_the_rise_stays_within_2_deg_with_mass_and_imu_offset_errors(mass_factor
     assert distance <= STARTUP_TARGETS['rest_distance_m']
 
 
+def test_the_planned_rise_is_off_by_default():
+    sc = Scenario(controller='auto', duration=0.1)
+    core = _build_core(sc)
+    core.reset(Plant(sc).sensors(0.0))
+    assert not core.planned_rise and core.rise is not None   # solved, ready to be turned on
+    core = planned_core(sc)
+    core.reset(Plant(sc).sensors(0.0))
+    assert core.planned_rise
+
+
 def test_a_robot_off_its_tail_is_not_planned():
     sc = Scenario(controller='auto', theta0=math.radians(10.0), duration=0.1)
-    core = _build_core(sc)
+    core = planned_core(sc)
     core.reset(Plant(sc).sensors(0.0))
     assert not core.planned_rise
 
 
-def _run(sc, core, ticks):
+def run(sc, core, ticks):
     plant = Plant(sc)
     us, planned = [], []
     for k in range(ticks):
@@ -114,18 +130,39 @@ def _run(sc, core, ticks):
 
 def test_the_hand_over_to_the_hold_is_bumpless():
     sc = Scenario(controller='auto')
-    core = _build_core(sc)
-    us, planned, plant = _run(sc, core, 600)
+    core = planned_core(sc)
+    us, planned, plant = run(sc, core, 1200)
     k = int(np.flatnonzero(~planned[1:] & planned[:-1])[0]) + 1
     assert core.active_controller == 'output_regulation'
     assert np.max(np.abs(np.diff(us[k - 5:k + 50]))) < 2.0   # [N] per tick
 
 
+def test_the_leg_task_is_told_while_the_run_up_keeps_the_robot_on_its_tail():
+    # LegTask.tail_hold follows BalanceCore.rise_on_tail: on the tail from arming, not from
+    # the lift-off (the pitch rate), never again in the same rise.
+    sc = Scenario(controller='auto')
+    core = planned_core(sc)
+    plant = Plant(sc)
+    theta, flags = [], []
+    for k in range(800):
+        m = plant.sensors(k * sc.dt)
+        if k == 0:
+            core.reset(m)
+        flags.append(core.rise_on_tail)
+        o = core.step(m, Reference())
+        theta.append(plant.theta)
+        plant.advance(o.tau_left, o.tau_right, k * sc.dt)
+    flags, theta = np.array(flags), np.array(theta)
+    off = int(np.argmin(flags))
+    assert flags[0] and 0 < off and not flags[off:].any()
+    assert theta[off - 1] > sc.tail_angle - math.radians(1.0)   # still on the tail then
+
+
 def test_a_robot_that_cannot_follow_leaves_the_plan_for_ida_pbc():
     # Motors weaker than the controller knows: the pitch falls behind the plan.
     sc = Scenario(controller='auto', motor_torque_limit=2.0)
-    core = _build_core(sc)
-    us, planned, _ = _run(sc, core, 400)
+    core = planned_core(sc)
+    us, planned, _ = run(sc, core, 1000)
     left = int(np.argmin(planned))
     assert 0 < left < core.rise.duration / sc.dt
     assert core.active_controller == 'ida_pbc'

@@ -275,8 +275,13 @@ class BalanceCore:
 
     @property
     def planned_rise(self) -> bool:
-        """True while the planned rise (core/rise.py) computes the force."""
+        """Return True while the planned rise (core/rise.py) computes the force."""
         return self.rise is not None and self.rise.running
+
+    @property
+    def rise_on_tail(self) -> bool:
+        """Return True while the planned rise's run-up has the robot on its tail (core/rise.py)."""
+        return self.rise is not None and self.rise.on_tail
 
     def _rise_handover(self, theta_meas: float, tilt: float, theta_dot: float,
                        dt: float) -> Optional[str]:

@@ -12,7 +12,9 @@ so that the push that lifts the body cancels that backward speed and the body ar
 at rest. ``plan_rise`` finds such a motion:
 
 - phase A, on the tail: theta = theta_0, (M + m) x_ddot = u, u <= U_TAIL_MARGIN (M + m) g
-  tan(theta_0) (the body stays on the tail);
+  tan(theta_0) (the body stays on the tail) and u >= -(M + m) ``run_up_acceleration`` (the
+  robot does not tip forward over its tail wheel: model (1) has no such limit, a real robot
+  does);
 - phase B, off it: model (1) at height l (core/model.py), theta >= -``lean_max`` (the
   overshoot the plan allows itself), ending upright at rest: theta = theta_dot = x_dot = u = 0;
 - |u| <= ``force_share`` x 2 tau_max / r_w in both (the rest is the feedback's);
@@ -69,7 +71,10 @@ class RiseSpec:
 
     l: height [m]; theta_0: the tail's pitch, where the rise starts [rad]; max_wheel_torque:
     per-wheel limit [N m]; force_share: the plan's share of the force limit; lean_max: the
-    largest lean back the plan may use [rad]; dt: control period [s].
+    largest lean back the plan may use [rad]; run_up_acceleration: the most the run-up may
+    accelerate backwards [m/s^2] (harder tips the robot forward over its tail wheel, lifting
+    the drive wheels: 2.9 m/s^2 did in MuJoCo, 2026-12-07; model (1) does not see it); dt:
+    control period [s].
     """
 
     l: float = 0.37
@@ -77,6 +82,7 @@ class RiseSpec:
     max_wheel_torque: float = 12.0
     force_share: float = 0.6
     lean_max: float = math.radians(0.3)
+    run_up_acceleration: float = 1.5
     dt: float = CONTROL_PERIOD
 
 
@@ -174,11 +180,13 @@ def plan_rise(p: RobotParams, spec: RiseSpec) -> np.ndarray:
         return np.concatenate([th + spec.lean_max, spec.theta_0 - th[1:],
                                u_tail / U - z[2:3 + n_a]])
 
-    bounds = [(0.05, 1.0), (0.15, 1.5)] + [(-1.0, 1.0)] * (2 + n_a + KNOTS_FLIGHT)
+    back = -(M + m) * spec.run_up_acceleration / U
+    bounds = ([(0.05, 3.0), (0.15, 1.5)] + [(back, 1.0)] * (1 + n_a)
+              + [(-1.0, 1.0)] * (1 + KNOTS_FLIGHT))
     # A start near the optimum's shape: full reverse, back to the tail's limit, a full push
     # that lifts the body, then braking.
-    z0 = np.array([0.24, 0.32, -1.0, -1.0, -1.0, -0.3, 0.6, 1.0, 1.0, 1.0, 0.5, 0.0, -0.5,
-                   -0.5, -0.3, -0.1])
+    z0 = np.array([1.0 + 0.2 / spec.run_up_acceleration, 0.32, back, back, back, back, 0.6,
+                   1.0, 1.0, 1.0, 0.5, 0.0, -0.5, -0.5, -0.3, -0.1])
     res = minimize(cost, z0, method='SLSQP', bounds=bounds,
                    constraints=[{'type': 'eq', 'fun': end}, {'type': 'ineq', 'fun': path}],
                    options={'maxiter': 300, 'ftol': 1e-10})
@@ -195,7 +203,9 @@ def sample_plan(spec: RiseSpec, plan) -> np.ndarray:
     plan: ``plan_rise``'s (rows, index of the lift-off row), interpolated linearly.
     """
     rows, k = plan
-    t = np.arange(0.0, rows[-1, 0] + 0.5 * spec.dt, spec.dt)
+    # Every tick up to the first at or after the plan's end, which gets the end itself.
+    t = np.minimum(np.arange(int(math.ceil(rows[-1, 0] / spec.dt - 1e-9)) + 1) * spec.dt,
+                   rows[-1, 0])
     out = np.zeros((t.size, 7))
     out[:, 0] = t
     for j in range(1, 6):
@@ -316,8 +326,13 @@ class PlannedRise:
 
     @property
     def finished(self) -> bool:
-        """True once the last row of the plan has been used."""
+        """Return True once the last row of the plan has been used."""
         return self._k >= len(self.rows)
+
+    @property
+    def on_tail(self) -> bool:
+        """Return True while running and the body has not left the tail (by plan and gyro)."""
+        return self.running and self._last is None and self._k < len(self.rows)
 
     def off_plan(self, theta: float) -> bool:
         """Return True when the pitch theta~ [rad] is over max_error from this tick's row."""
@@ -327,7 +342,7 @@ class PlannedRise:
     @property
     def offset(self) -> float:
         """
-        The IMU offset as the flight shows it [rad]: d_0 plus what (4a) says is left.
+        Return the IMU offset as the flight shows it [rad]: d_0 plus what (4a) says is left.
 
         Model (1)'s pendulum row, l theta_ddot = g sin(theta) - cos(theta) x_ddot, holds
         whatever the masses; with theta = theta~ - d_0 - delta and delta small, summed over the

@@ -35,8 +35,7 @@ def start_up(planned: bool, mass_factor: float = 1.0, d_deg: float = 0.0,
     sc = Scenario(name='planned rise' if planned else 'IDA-PBC rise', controller='auto',
                   duration=duration, mass_factor=mass_factor, imu_offset=math.radians(d_deg))
     core = _build_core(sc)
-    if not planned:
-        core.set_auto_rules(replace(core.config.auto, planned_rise=False))
+    core.set_auto_rules(replace(core.config.auto, planned_rise=planned))
     return simulate(sc, core)
 
 
