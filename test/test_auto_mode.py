@@ -73,7 +73,9 @@ def test_selecting_auto_live_goes_on_with_the_running_controller():
 
 
 def _start_up(controller, duration=10.0, gains=IdaPbcGains()):
-    core = BalanceCore(RobotParams(), CoreConfig(controller=controller, ida_pbc=gains))
+    # IDA-PBC rises: these are the auto mode's rules; the planned rise is test_rise.py's.
+    core = BalanceCore(RobotParams(), CoreConfig(controller=controller, ida_pbc=gains,
+                                                 auto=AutoRules(planned_rise=False)))
     r = simulate(Scenario(controller=controller, duration=duration, imu_offset=D), core)
     return r, core
 

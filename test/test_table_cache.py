@@ -12,7 +12,7 @@ import os
 import numpy as np
 import pytest
 
-from wheelleg_balance.core import default_tables, lqr, observer, table_cache
+from wheelleg_balance.core import default_tables, lqr, observer, rise, table_cache
 from wheelleg_balance.core.balance_loop import BalanceLoop
 from wheelleg_balance.core.config import BalanceConfig
 from wheelleg_balance.core.params import CONTROL_PERIOD, RobotParams
@@ -34,6 +34,7 @@ def _no_solving(monkeypatch):
         raise AssertionError('solved instead of read')
     monkeypatch.setattr(observer, 'observer_rows', refuse)
     monkeypatch.setattr(lqr, 'lqr_gain', refuse)
+    monkeypatch.setattr(rise, 'plan_rise', refuse)
 
 
 def _fresh(p: RobotParams = RobotParams()):
@@ -51,7 +52,8 @@ def _same_bits(a, b) -> bool:
 
 
 def test_the_default_tables_read_back_are_the_solved_ones_bit_for_bit(cache, monkeypatch):
-    assert default_tables.write_defaults(str(cache)) == 2   # the observer's and the LQR's
+    # the observer's, the LQR's and the planned rise's
+    assert default_tables.write_defaults(str(cache)) == 3
     table_cache.forget()
     _no_solving(monkeypatch)
     loop = BalanceLoop(BalanceConfig())
@@ -62,6 +64,10 @@ def test_the_default_tables_read_back_are_the_solved_ones_bit_for_bit(cache, mon
     assert _same_bits(np.array(obs.gains), rows[:, :, 6:8])
     assert _same_bits(schedule.gains, gains)
     assert schedule._k == [tuple(float(v) for v in k) for k in gains]
+    plan = loop.core.rise
+    table_cache.keep_in(None)
+    table_cache.forget()
+    assert _same_bits(np.array(plan.rows), rise.rise_table(plan.p, plan.spec))   # solved
 
 
 def test_a_new_table_is_written_once_and_then_read(cache, monkeypatch):

@@ -67,6 +67,9 @@ class AutoRules:
                                      'this rate (its body leans about atan(a/g)), the last '
                                      '%g s x a of speed more gently [m/s^2]' % STOP_TAIL_S,
                                      0.01, 10.0)
+    planned_rise: bool = param(False, 'at arming on the tail at height_min, rise along the '
+                               'planned trajectory (core/rise.py) instead of IDA-PBC (off: in '
+                               'MuJoCo the robot tips over its tail wheel, docs/motions.md)')
 
     def problems(self) -> List[str]:
         """Check the hysteresis: each enter threshold below its leave threshold."""

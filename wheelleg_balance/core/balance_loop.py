@@ -186,6 +186,7 @@ class BalanceLoop:
         r, arming = self._result, self.arming
         faults = arming.safety._faults   # empty but in FAULT
         lifted = any(f.code == LIFTED for f in faults) if faults else False
+        self.legs_task.tail_hold = self.balancing.core.rise_on_tail
         frames, events = self.legs_task.step(mode, now, s, dt, s.theta - self.balancing.d_hat,
                                              self.balancing.rising, self._ticks, lifted,
                                              self.imu.gyro[0])

@@ -39,7 +39,7 @@ def core_config(cfg: BalanceConfig) -> CoreConfig:
                       lqr_Q=np.diag(cfg.output_regulation.q_diag),
                       lqr_R=cfg.output_regulation.r,
                       linear_gain_source=cfg.output_regulation.gain_source, auto=cfg.auto,
-                      hold=cfg.output_regulation)
+                      hold=cfg.output_regulation, tail_pitch=cfg.safety.tail_pitch)
 
 
 class Balancing:

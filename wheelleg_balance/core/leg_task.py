@@ -294,6 +294,9 @@ class LegTask(NoLegs):
         self.raised_since: Optional[float] = None
         self.raise_integral = 0.0
         self.hold_height: Optional[float] = None   # the length held on the tail (sit-down)
+        #: The planned rise's run-up: the robot still rests on its tail while balancing (the tick
+        #: sets it from BalanceCore.rise_on_tail); the legs then hold as while raised on it.
+        self.tail_hold = False
         self.lift_hold: Optional[Tuple[float, float]] = None   # the heights when lifted
         super().__init__(cfg)
 
@@ -465,6 +468,13 @@ class LegTask(NoLegs):
         elif not rising:
             sh.command(self.commanded)
         l_ref, l_dot = sh.step(dt)
+        if rising and self.tail_hold and mode is Mode.BALANCING:
+            # The whole weight's share pushed the legs open and tipped the robot over its tail
+            # wheel during the planned rise's run-up (MuJoCo, 2026-12-07): as in _prepare.
+            l_cmd = self._tail_height(l_ref, legs.state, dt)
+            frames += legs.frames(legs.controller.commands(l_cmd, l_cmd, l_dot, l_dot,
+                                                           pitch=theta, load=TAIL_LOAD))
+            return
         if self.sit is not None and self.sit.phase == BRAKE:
             # On the tail: the legs hold the length they had at contact, so the tail stops the
             # body's rotation (legs that give way, or push with the whole weight's share, let

@@ -32,6 +32,7 @@ from .lqr import linear_gains
 from .observer import DisturbanceObserver
 from .output_regulation import HoldShape, LqrController, OutputRegulationController
 from .params import CONTROL_PERIOD, IdaPbcGains, RobotParams
+from .rise import PlannedRise, RiseSpec
 
 #: The controllers (``TickOutput.controller``, the index in ~/state).
 CONTROLLER_NAMES = ('ida_pbc', 'output_regulation', 'lqr')
@@ -89,6 +90,7 @@ class CoreConfig:
     linear_gain_source: the linear controllers' k_x(l): 'lqr' (from lqr_Q, lqr_R) or
     'table_i' (Table I's k_x at every height; core/lqr.py linear_gains).
     hold: how output regulation holds and moves the robot (core/output_regulation.py).
+    tail_pitch: the pitch of the tail rest, where the planned rise starts [rad].
     """
 
     controller: str = 'ida_pbc'
@@ -107,6 +109,7 @@ class CoreConfig:
     linear_gain_source: str = 'lqr'
     auto: AutoRules = field(default_factory=AutoRules)
     hold: HoldShape = field(default_factory=HoldShape)
+    tail_pitch: float = RiseSpec.theta_0
 
 
 @dataclass(frozen=True)
@@ -178,6 +181,7 @@ class BalanceCore:
             'lqr': LqrController(p, self.schedule),
         }
         self.observer = DisturbanceObserver(p, dt)
+        self.rise = _planned_rise(p, self.config, dt)
         self.odometry = odometry if odometry is not None else WheelOdometry(p)
         self._auto: Optional[AutoSelector] = None
         self._takeover_speed = 0.0   # [m/s], fading out after the hold's take-over
@@ -219,6 +223,8 @@ class BalanceCore:
                                           if self._active in (RISE, HOLD) else RISE)
             return
         self._auto = None
+        if self.rise is not None:
+            self.rise.stop()
         if name != self._active:
             self._requested = name
 
@@ -255,10 +261,47 @@ class BalanceCore:
         if self._auto is not None:
             self._auto.reset()
             self._active = self._auto.choice
+        rise = self.rise
+        if rise is not None:
+            rise.stop()
+            c = self.config
+            if self._auto is not None and c.auto.planned_rise and rise.applies(
+                    meas.theta_meas - c.d_hat0, theta_dot, meas.l, c.max_wheel_torque):
+                rise.start(c.d_hat0)
         s = self._control_input(meas.theta_meas, meas.theta_dot, 0.0, 0.0,
                                 self._height(meas.l), 0.0, self.observer.xi_hat)
         for controller in self.controllers.values():
             controller.reset(s)
+
+    @property
+    def planned_rise(self) -> bool:
+        """Return True while the planned rise (core/rise.py) computes the force."""
+        return self.rise is not None and self.rise.running
+
+    @property
+    def rise_on_tail(self) -> bool:
+        """Return True while the planned rise's run-up has the robot on its tail (core/rise.py)."""
+        return self.rise is not None and self.rise.on_tail
+
+    def _rise_handover(self, theta_meas: float, tilt: float, theta_dot: float,
+                       dt: float) -> Optional[str]:
+        """
+        Return the controller that takes over from the planned rise now, None: not yet.
+
+        IDA-PBC when the pitch leaves the plan, or the body is far from upright after it (the
+        auto mode's leave rule); the hold once the plan has ended and the auto mode's enter
+        rule holds (its dwell counted from the plan's end). tilt: theta~ - d_hat [rad].
+        """
+        auto, r = self._auto, self.config.auto
+        if self.rise.off_plan(theta_meas):
+            auto.reset()
+            return RISE
+        if not self.rise.finished:
+            return None
+        if not (abs(tilt) <= r.leave_angle and abs(theta_dot) <= r.leave_rate):
+            auto.reset()
+            return RISE
+        return HOLD if auto.choose(tilt, theta_dot, dt) == HOLD else None
 
     def coast(self, w_left: float, w_right: float, theta_dot: float, dt: float) -> None:
         """
@@ -312,7 +355,15 @@ class BalanceCore:
         l = self._l
         z = self.observer.update_floats(theta_meas, x, self._u_applied, l)
         d_hat = z[4]
-        if self._auto is not None:
+        rise = self.rise
+        planned = rise is not None and rise.running
+        if planned:
+            handover = self._rise_handover(theta_meas, theta_meas - d_hat, theta_dot, dt)
+            if handover is not None:
+                rise.stop()
+                planned = False
+                self._requested = handover
+        elif self._auto is not None:
             choice = self._auto.choose(theta_meas - d_hat, theta_dot, dt)
             if choice != self._active:
                 self._requested = choice
@@ -328,7 +379,9 @@ class BalanceCore:
             self._takeover_speed = brake_step(self._takeover_speed,
                                               self.config.auto.stop_deceleration, dt)
 
-        if requested is not None:
+        if planned:
+            u_cmd = rise.step(theta_meas, theta_dot, x, x_dot)
+        elif requested is not None:
             # Bumpless transfer: the new controller starts from the current estimate, and the
             # difference to the last command fades out instead of stepping the torque.
             s = self._control_input(theta_meas, theta_dot, x, x_dot, l, x_dot_ref_c, z)
@@ -382,3 +435,12 @@ class BalanceCore:
         o.yaw_rate, o.d_hat, o.l = yaw_rate, d_hat, l
         o.controller, o.saturated = self._active, saturated
         return o
+
+
+def _planned_rise(p: RobotParams, c: CoreConfig, dt: float) -> Optional[PlannedRise]:
+    """Return the planned rise of this robot (core/rise.py), None when it cannot be solved."""
+    try:
+        return PlannedRise(p, RiseSpec(l=p.height_min, theta_0=c.tail_pitch - c.d_hat0,
+                                       max_wheel_torque=c.max_wheel_torque, dt=dt))
+    except RuntimeError:
+        return None   # IDA-PBC rises, as without the plan
