@@ -97,7 +97,7 @@ def test_the_planned_rise_is_off_by_default():
     sc = Scenario(controller='auto', duration=0.1)
     core = _build_core(sc)
     core.reset(Plant(sc).sensors(0.0))
-    assert not core.planned_rise and core.rise is not None   # solved, ready to be turned on
+    assert not core.planned_rise and core.rise is None   # not solved: the start stays short
     core = planned_core(sc)
     core.reset(Plant(sc).sensors(0.0))
     assert core.planned_rise

@@ -6,6 +6,7 @@ The LQR schedule (core/lqr.py) and the observer's matrices (core/observer.py) ar
 configuration's, the control process keeps a robot's own in a cache folder). What is read must
 be bit for bit what a fresh solve gives, and nothing may be read for other inputs.
 """
+from dataclasses import replace
 import json
 import os
 
@@ -56,7 +57,8 @@ def test_the_default_tables_read_back_are_the_solved_ones_bit_for_bit(cache, mon
     assert default_tables.write_defaults(str(cache)) == 3
     table_cache.forget()
     _no_solving(monkeypatch)
-    loop = BalanceLoop(BalanceConfig())
+    cfg = BalanceConfig()
+    loop = BalanceLoop(replace(cfg, auto=replace(cfg.auto, planned_rise=True)))
     monkeypatch.undo()
     rows, gains = _fresh()
     obs, schedule = loop.core.observer, loop.core.schedule

@@ -69,7 +69,9 @@ class AutoRules:
                                      0.01, 10.0)
     planned_rise: bool = param(False, 'at arming on the tail at height_min, rise along the '
                                'planned trajectory (core/rise.py) instead of IDA-PBC (off: in '
-                               'MuJoCo the robot tips over its tail wheel, docs/motions.md)')
+                               'MuJoCo the robot tips over its tail wheel, docs/motions.md); '
+                               'read-only: the plan is solved or read at start',
+                               read_only=True)
 
     def problems(self) -> List[str]:
         """Check the hysteresis: each enter threshold below its leave threshold."""

@@ -181,7 +181,9 @@ class BalanceCore:
             'lqr': LqrController(p, self.schedule),
         }
         self.observer = DisturbanceObserver(p, dt)
-        self.rise = _planned_rise(p, self.config, dt)
+        # Solved (or read from the cache) only when asked for: a robot's own model would
+        # otherwise solve it at every start (2.5-4.5 s) for a rise it does not use.
+        self.rise = _planned_rise(p, self.config, dt) if self.config.auto.planned_rise else None
         self.odometry = odometry if odometry is not None else WheelOdometry(p)
         self._auto: Optional[AutoSelector] = None
         self._takeover_speed = 0.0   # [m/s], fading out after the hold's take-over
@@ -233,6 +235,10 @@ class BalanceCore:
         self.config.auto = rules
         if self._auto is not None:
             self._auto.rules = rules
+        if rules.planned_rise and self.rise is None:
+            # Offline users only (simulations, tests): balance_node's auto.planned_rise is
+            # read-only, so the control loop never waits for a solve.
+            self.rise = _planned_rise(self.p, self.config, self.dt)
 
     def set_hold_shape(self, shape: HoldShape) -> None:
         """Replace output regulation's hold shape (lean limits, roll-out); from the next tick."""
