@@ -58,6 +58,22 @@ class DjiC620Protocol(MotorProtocol):
         self._code_per_nm = CURRENT_CODE_MAX / CURRENT_MAX / self.torque_constant
         self._code_limit = int(self.current_limit * CURRENT_CODE_MAX / CURRENT_MAX)
 
+    @classmethod
+    def from_config(cls, section) -> 'DjiC620Protocol':
+        """Build the codec from a core/config.py DjiConfig section."""
+        return cls(torque_constant=section.torque_constant, gear_ratio=section.gear_ratio,
+                   current_limit=section.current_limit)
+
+    @property
+    def position_span(self) -> float:
+        """Return the span [rad] of the feedback's position: one rotor turn at the output."""
+        return 2.0 * math.pi / self.gear_ratio
+
+    @property
+    def speed_range(self) -> float:
+        """Return the largest speed [rad/s] the feedback's int16 rpm field holds."""
+        return 32767 * 2.0 * math.pi / 60.0 / self.gear_ratio
+
     def current_code(self, torque: float) -> int:
         """Command code for a motor torque [N m]: rounded, clamped, 0 for NaN/inf."""
         if not -math.inf < torque < math.inf:  # NaN fails both comparisons
