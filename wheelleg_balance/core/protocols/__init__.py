@@ -11,10 +11,10 @@ configuration section; ``register_protocol`` adds one (a test's, a builder's) at
 from typing import Any, Type
 
 from .base import Frame, MotorFeedback, MotorProtocol
-from .cybergear import CybergearProtocol
-from .damiao import DamiaoProtocol
+from .cybergear import CybergearConfig, CybergearProtocol
+from .damiao import DamiaoConfig, DamiaoProtocol
 from .dji import DjiC620Protocol
-from .lk import LkProtocol
+from .lk import LkConfig, LkProtocol
 from .mit import MitCommand, MitProtocol
 
 #: Protocol classes by ``can.protocol`` name.
@@ -41,6 +41,24 @@ def protocol_from_config(name: str, section: Any) -> MotorProtocol:
     return protocol_class(name).from_config(section)
 
 
+def protocol_for(name: str, owner: Any) -> MotorProtocol:
+    """
+    Build protocol ``name`` from its section of ``owner`` (a CanConfig or LegsConfig).
+
+    The section is the class's ``config_section`` attribute of owner; a protocol whose section
+    owner lacks (one defined outside the package) gets its defaults.
+    """
+    cls = protocol_class(name)
+    return cls.from_config(getattr(owner, cls.config_section, None) if cls.config_section
+                           else None)
+
+
+def impedance_protocols():
+    """Return the names of the protocols that send impedance commands (command_frame): hips."""
+    return tuple(n for n, cls in PROTOCOLS.items()
+                 if callable(getattr(cls, 'command_frame', None)))
+
+
 def register_protocol(cls: Type[MotorProtocol]) -> Type[MotorProtocol]:
     """Add a MotorProtocol subclass to the table under its ``name`` (usable as a decorator)."""
     if not (isinstance(cls, type) and issubclass(cls, MotorProtocol) and cls.name):
@@ -49,6 +67,8 @@ def register_protocol(cls: Type[MotorProtocol]) -> Type[MotorProtocol]:
     return cls
 
 
-__all__ = ['CybergearProtocol', 'DamiaoProtocol', 'DjiC620Protocol', 'Frame', 'LkProtocol',
+__all__ = ['CybergearConfig', 'CybergearProtocol', 'DamiaoConfig', 'DamiaoProtocol',
+           'DjiC620Protocol', 'Frame', 'impedance_protocols', 'LkConfig', 'LkProtocol',
            'make_protocol', 'MitCommand', 'MitProtocol', 'MotorFeedback', 'MotorProtocol',
-           'protocol_class', 'protocol_from_config', 'PROTOCOLS', 'register_protocol']
+           'protocol_class', 'protocol_for', 'protocol_from_config', 'PROTOCOLS',
+           'register_protocol']

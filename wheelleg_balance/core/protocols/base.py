@@ -57,10 +57,18 @@ class MotorProtocol(ABC):
 
     #: Short name, the value of the node's ``can.protocol`` parameter.
     name = ''
+    #: The configuration section of its figures (``can.<config_section>``, and under ``legs``
+    #: for a protocol the hips can speak); '' or a missing section: the class defaults.
+    config_section = ''
     #: The reply's position field [rad]: the span after which it wraps (inf: it neither wraps
     #: nor ends), or, with position_saturates, the span whose ends it sticks at.
     position_span = math.inf
     position_saturates = False
+
+    @property
+    def torque_limit(self) -> float:
+        """Return the largest torque [N m] a command can ask for (inf: none known)."""
+        return math.inf
 
     @property
     def speed_range(self) -> float:
@@ -112,8 +120,8 @@ class MotorProtocol(ABC):
 
     @classmethod
     def from_config(cls, section: Any) -> 'MotorProtocol':
-        """Build the codec from its configuration section (a dataclass with codec_kwargs)."""
-        return cls(**section.codec_kwargs())
+        """Build the codec from its configuration section (codec_kwargs); None: defaults."""
+        return cls() if section is None else cls(**section.codec_kwargs())
 
     @abstractmethod
     def enable_frames(self, motor_ids: Iterable[int]) -> List[Frame]:

@@ -118,6 +118,7 @@ class CybergearProtocol(MotorProtocol):
     """
 
     name = 'cybergear'
+    config_section = 'cybergear'
     config = CybergearConfig
     position_saturates = True
 
@@ -136,6 +137,11 @@ class CybergearProtocol(MotorProtocol):
         self.position_span = 2.0 * self.p_max
         self._p0 = to_u16(0.0, -self.p_max, self.p_max)
         self._v0 = to_u16(0.0, -self.v_max, self.v_max)
+
+    @property
+    def torque_limit(self) -> float:
+        """Return the largest torque [N m] a command can ask for (t_max)."""
+        return self.t_max
 
     @property
     def speed_range(self) -> float:

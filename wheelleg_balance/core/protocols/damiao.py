@@ -90,6 +90,7 @@ class DamiaoProtocol(MitProtocol):
     """
 
     name = 'damiao'
+    config_section = 'damiao'
     config = DamiaoConfig
 
     def __init__(self, p_max: float = 12.5, v_max: float = 30.0, t_max: float = 10.0,

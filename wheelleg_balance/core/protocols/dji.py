@@ -47,6 +47,7 @@ class DjiC620Protocol(MotorProtocol):
     """
 
     name = 'dji_c620'
+    config_section = 'dji'
 
     def __init__(self, torque_constant: float = M3508_TORQUE_CONSTANT,
                  gear_ratio: float = M3508_GEAR_RATIO, current_limit: float = CURRENT_MAX):
@@ -61,6 +62,8 @@ class DjiC620Protocol(MotorProtocol):
     @classmethod
     def from_config(cls, section) -> 'DjiC620Protocol':
         """Build the codec from a core/config.py DjiConfig section."""
+        if section is None:
+            return cls()
         return cls(torque_constant=section.torque_constant, gear_ratio=section.gear_ratio,
                    current_limit=section.current_limit)
 
@@ -68,6 +71,11 @@ class DjiC620Protocol(MotorProtocol):
     def position_span(self) -> float:
         """Return the span [rad] of the feedback's position: one rotor turn at the output."""
         return 2.0 * math.pi / self.gear_ratio
+
+    @property
+    def torque_limit(self) -> float:
+        """Return the largest torque [N m] a command can ask for (current_limit)."""
+        return self._code_limit * CURRENT_MAX / CURRENT_CODE_MAX * self.torque_constant
 
     @property
     def speed_range(self) -> float:

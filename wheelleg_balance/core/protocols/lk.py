@@ -100,6 +100,7 @@ class LkProtocol(MotorProtocol):
     """
 
     name = 'lk'
+    config_section = 'lk'
     config = LkConfig
 
     def __init__(self, current_max: float = MF_CURRENT_MAX, torque_constant: float = 0.32,

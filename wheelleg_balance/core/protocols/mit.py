@@ -96,6 +96,7 @@ class MitProtocol(MotorProtocol):
     """
 
     name = 'mit'
+    config_section = 'mit'
 
     def __init__(self, p_min: float = -12.5, p_max: float = 12.5, v_min: float = -50.0,
                  v_max: float = 50.0, kp_max: float = 500.0, kd_max: float = 5.0,
@@ -134,7 +135,12 @@ class MitProtocol(MotorProtocol):
     @classmethod
     def from_config(cls, section) -> 'MitProtocol':
         """Build the codec from a core/config.py MitLimits section (its codec_ranges)."""
-        return cls(**section.codec_ranges())
+        return cls() if section is None else cls(**section.codec_ranges())
+
+    @property
+    def torque_limit(self) -> float:
+        """Return the largest torque [N m] a command can ask for (the T range's)."""
+        return min(-self.t_min, self.t_max)
 
     @property
     def speed_range(self) -> float:
