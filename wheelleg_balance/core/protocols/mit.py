@@ -149,7 +149,7 @@ class MitProtocol(MotorProtocol):
 
     def error_reason(self, code: int) -> str:
         """Return the meaning of an 8-byte reply's error code (CubeMars AK firmware)."""
-        return MIT_ERROR_CODES.get(int(code), 'unknown error code %d' % int(code))
+        return MIT_ERROR_CODES.get(int(code), 'unknown error code')
 
     # ---- host side -------------------------------------------------------------------------
 
