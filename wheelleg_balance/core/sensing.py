@@ -140,11 +140,12 @@ class Sensing:
         self.health = [(self.motors, _model(cfg.can, self.protocol))] + (
             [(self.hips, _model(cfg.legs, self.hips.protocol))] if self.hips is not None else [])
         wrap = 65536.0 / 65535.0 if cfg.wheel_state.position_wraps else math.inf
-        for motors, model in self.health:
-            if isinstance(motors.protocol, MitProtocol):
+        for motors, model in self.health:   # the reboot check where the model sets a limit
+            p = motors.protocol
+            if getattr(model, 'position_jump', None):
                 motors.jump_limit = model.position_jump
-                motors.span = (motors.protocol.p_max - motors.protocol.p_min) * wrap
-                motors.speed_limit = 0.9 * min(-motors.protocol.v_min, motors.protocol.v_max)
+                motors.span = math.inf if p.position_saturates else p.position_span * wrap
+                motors.speed_limit = 0.9 * p.speed_range
         #: Command frames to our motors that this node did not send (a second commander): how
         #: many, the newest's receipt time [s], the motors it addressed, one since the check.
         self.foreign_commands = 0

@@ -78,6 +78,10 @@ class CybergearConfig:
                             'C] (the firmware warns at 75 and stops at 80)', -40.0, 200.0,
                             read_only=True)
 
+    position_jump: float = param(0.3, 'cybergear: a reply position this far off the extrapolation '
+                                 'of the previous reply is a reboot: fault [rad]', 0.01, 10.0,
+                                 read_only=True)
+
     def codec_kwargs(self) -> dict:
         """Keyword arguments of CybergearProtocol for this model."""
         return {'p_max': self.p_max, 'v_max': self.v_max, 't_max': self.t_max,

@@ -75,6 +75,10 @@ class DamiaoConfig:
     temp_max: float = param(85.0, 'damiao: motor temperature at which balancing ends [deg C]',
                             -40.0, 200.0, read_only=True)
 
+    position_jump: float = param(0.3, 'damiao: a reply position this far off the extrapolation '
+                                 'of the previous reply is a reboot: fault [rad]', 0.01, 10.0,
+                                 read_only=True)
+
     def codec_kwargs(self) -> dict:
         """Keyword arguments of DamiaoProtocol for this model."""
         return {'p_max': self.p_max, 'v_max': self.v_max, 't_max': self.t_max,
