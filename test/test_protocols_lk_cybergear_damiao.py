@@ -511,3 +511,19 @@ def test_a_protocol_defined_in_a_test_module_plugs_into_the_table(monkeypatch):
     assert bank.torque(1, 0.0) == pytest.approx(1.5)
     with pytest.raises(ValueError):
         register_protocol(int)
+
+
+@pytest.mark.parametrize('protocol, wrong, words', [
+    (CG, {'run_mode': 2}, 'speed mode (run_mode = 2)'),
+    (DM, {'control_mode': 2}, 'position-velocity mode (CTRL_MODE = 2)')],
+    ids=['cybergear', 'damiao'])
+def test_bring_up_finds_a_motor_in_the_wrong_mode(protocol, wrong, words):
+    bank = EmulatedMotors(protocol, [1, 2])
+    for key, value in wrong.items():
+        setattr(bank.motor(2), key, value)
+    verdicts = dict(protocol.mode_problem(r) for f in protocol.mode_query_frames([1, 2])
+                    for r in bank.handle(f, 0.0))
+    assert verdicts[1] is None
+    assert words in verdicts[2] and ('run_mode 0' in verdicts[2] or '= 1' in verdicts[2])
+    assert protocol.mode_problem(protocol.torque_frames({1: 0.0})[0]) is None
+    assert LK.mode_query_frames([1]) == [] and LK.mode_problem(Frame(0x141, bytes(8))) is None

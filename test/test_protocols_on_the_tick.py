@@ -139,3 +139,29 @@ def test_an_lk_reboot_loses_nothing_the_tick_needs(make_bench):
     assert applied(bench)[0] == pytest.approx(LIMIT, abs=0.01)
     fb = bench.loop.motors.by_id[left].feedback
     assert fb.position == pytest.approx(3.0, abs=1e-3) and math.isfinite(fb.velocity)
+
+
+def _foreign_commands():
+    """Per protocol: a command of another sender to wheel motor 1 (not one of ours)."""
+    from wheelleg_balance.core.protocols import make_protocol
+    lk, cg, dm = (make_protocol(n) for n in PROTOCOLS)
+    return {'lk': lk.torque_frames({1: 0.5})[0],                       # 0xA1 on 0x141
+            'cybergear': cg.command_frame(1, 0.0, 0.0, 5.0, 0.1, 0.0),  # type 1, kp 5
+            'damiao': dm.command_frame(1, 0.0, 0.0, 5.0, 0.1, 0.0)}     # MIT on ID 1
+
+
+@pytest.mark.parametrize('protocol', PROTOCOLS)
+def test_a_second_commander_faults_the_tick_and_its_replies_do_not(make_bench, protocol):
+    bench = make_bench(protocol)
+    for _ in range(25):   # the motors' own replies (and LK's run echo) are no commands
+        bench.feed()
+        bench.tick()
+    assert bench.mode == int(Mode.BALANCING)
+    bench.feed()
+    bench.inputs.frames.append((bench.t + bench.period, _foreign_commands()[protocol]))
+    bench.tick()
+    assert bench.mode == int(Mode.FAULT)
+    faults = bench.loop.supervisor.faults
+    assert [f.code for f in faults] == ['input_conflict'] and 'another sender' in \
+        faults[0].message
+    assert no_torque(bench)

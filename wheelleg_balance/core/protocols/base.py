@@ -106,6 +106,18 @@ class MotorProtocol(ABC):
         """Frames that make the present position the motors' zero. Never sent automatically."""
         return []
 
+    def mode_query_frames(self, motor_ids: Iterable[int]) -> List[Frame]:
+        """Frames that ask the motors which control mode they are in (bring-up; none here)."""
+        return []
+
+    def mode_problem(self, frame: Frame) -> Optional[Tuple[int, Optional[str]]]:
+        """
+        Judge an answer to mode_query_frames: (motor ID, what is wrong and its fix, or None).
+
+        None for a frame that is no such answer. Never raises.
+        """
+        return None
+
     def error_reason(self, code: int) -> str:
         """Return the meaning of the reply's error code ``code`` (not 0) in words."""
         return 'error code 0x%X' % int(code)

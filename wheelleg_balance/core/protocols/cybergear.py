@@ -225,6 +225,23 @@ class CybergearProtocol(MotorProtocol):
         value = struct.unpack_from(PARAMS.get(index, '<f'), data, 4)[0]
         return field & 0xFF, index, value
 
+    def mode_query_frames(self, motor_ids: Iterable[int]) -> List[Frame]:
+        """Read each motor's run_mode (type 17, index 0x7005)."""
+        return [self.param_read_frame(i, RUN_MODE) for i in motor_ids]
+
+    def mode_problem(self, frame: Frame) -> Optional[Tuple[int, Optional[str]]]:
+        """Judge a run_mode answer: (motor ID, None in operation control or the fix)."""
+        answer = self.decode_param_reply(frame)
+        if answer is None or answer[1] != RUN_MODE:
+            return None
+        motor_id, _, mode = answer
+        if mode == 0:
+            return motor_id, None
+        return motor_id, ('motor %d is in %s mode (run_mode = %d), not operation control: stop '
+                          'it (type 4) and write run_mode 0 (type 18, index 0x7005), or power '
+                          'it off and on (run_mode is not stored: operation control is the '
+                          'power-up mode)' % (motor_id, RUN_MODES.get(mode, 'an unknown'), mode))
+
     def decode_feedback(self, frame: Frame) -> Optional[MotorFeedback]:
         """
         Decode a type 2 feedback frame to the host; None for anything else.

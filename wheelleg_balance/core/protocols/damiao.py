@@ -142,6 +142,17 @@ class DamiaoProtocol(MitProtocol):
                 'it (AA)' % (motor_id, CONTROL_MODES.get(int(mode), 'an unknown'), mode,
                              motor_id & 0xFF, motor_id >> 8 & 0xFF))
 
+    def mode_query_frames(self, motor_ids: Iterable[int]) -> List[Frame]:
+        """Read each motor's CTRL_MODE (register 10)."""
+        return [self.register_read_frame(i, CTRL_MODE) for i in motor_ids]
+
+    def mode_problem(self, frame: Frame) -> Optional[Tuple[int, Optional[str]]]:
+        """Judge a CTRL_MODE answer: (motor ID, control_mode_problem); None for other frames."""
+        answer = self.decode_register_reply(frame)
+        if answer is None or answer[1] != CTRL_MODE:
+            return None
+        return answer[0], self.control_mode_problem(answer[0], answer[2])
+
     def decode_feedback(self, frame: Frame) -> Optional[MotorFeedback]:
         """
         Decode a reply on MST_ID: [status|ID, p16, v12, t12, T_MOS, T_rotor]; else None.
