@@ -23,7 +23,8 @@ import pytest
 from wheelleg_balance.core.protocols import (
     CybergearProtocol, DamiaoProtocol, Frame, LkProtocol, make_protocol, MotorFeedback,
     MotorProtocol, protocol_for, PROTOCOLS, register_protocol)
-from wheelleg_balance.core.protocols.emulation import EmulatedMotor, EmulatedMotors
+from wheelleg_balance.core.protocols.emulation import EmulatedMotor, EmulatedMotors, \
+    torque_only
 
 LK = LkProtocol()          # MF9025 class: 16.5 A at code 2048, 0.32 N m/A, 16-bit encoder
 CG = CybergearProtocol()   # P +-4 pi, V +-30, T +-12, kp 0..500, kd 0..5, host 0
@@ -495,7 +496,7 @@ class _TestMotor(EmulatedMotor):
 
     def handle(self, frame, q, q_dot, now):
         if frame.arbitration_id == 0x600 + self.motor_id:
-            self.set_command((0.0, 0.0, 0.0, 0.0, struct.unpack('b', frame.data)[0] / 10), now)
+            self.set_command(torque_only(struct.unpack('b', frame.data)[0] / 10), now)
         return None
 
 
@@ -527,3 +528,27 @@ def test_bring_up_finds_a_motor_in_the_wrong_mode(protocol, wrong, words):
     assert words in verdicts[2] and ('run_mode 0' in verdicts[2] or '= 1' in verdicts[2])
     assert protocol.mode_problem(protocol.torque_frames({1: 0.0})[0]) is None
     assert LK.mode_query_frames([1]) == [] and LK.mode_problem(Frame(0x141, bytes(8))) is None
+
+
+@pytest.mark.parametrize('changes, words', [
+    ({'can.protocol': 'lk', 'can.left_motor_id': 33}, 'lk: motor ID 33 outside 1..32'),
+    ({'can.protocol': 'damiao', 'can.right_motor_id': 17}, 'damiao: motor ID 17 outside'),
+    ({'can.protocol': 'cybergear', 'can.left_motor_id': 0}, 'cybergear: motor ID 0'),
+    ({'can.protocol': 'dji_c620', 'can.left_motor_id': 9}, 'dji_c620: ESC ID 9'),
+    ({'legs.driven': True, 'legs.can.protocol': 'damiao', 'legs.motor_ids': [3, 4, 5, 16]},
+     'damiao: motor ID 16'),
+    ({'can.protocol': 'lk', 'can.lk.current_limit': 30.0}, 'lk motor figures'),
+    ({'can.protocol': 'lk'}, "max_wheel_torque 12.00 N m above the lk motors' limit 5.28"),
+])
+def test_each_protocol_judges_its_figures_and_ids_in_the_configuration(changes, words):
+    from wheelleg_balance.core.config import BalanceConfig
+    from wheelleg_balance.core.schema import check, with_changes
+    base = {'wheel_state_source': 'joint_states', 'max_wheel_torque': 5.0}
+    if 'max_wheel_torque' in words:
+        base.pop('max_wheel_torque')
+    problems = check(with_changes(BalanceConfig(), {**base, **changes}))
+    assert any(words in p for p in problems), problems
+    fine = {k: v for k, v in changes.items() if k in ('can.protocol', 'legs.can.protocol')}
+    if 'legs.can.protocol' in fine or 'max_wheel_torque' in words:
+        return
+    assert check(with_changes(BalanceConfig(), {**base, **fine, 'max_wheel_torque': 4.0})) == []

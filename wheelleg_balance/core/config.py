@@ -21,8 +21,8 @@ from .lqr import DEFAULT_Q, DEFAULT_R, GAIN_SOURCES
 from .output_regulation import HoldShape
 from .params import IdaPbcGains, RobotParams
 from .pipeline import MODES
-from .protocols import (CybergearConfig, DamiaoConfig, impedance_protocols, LkConfig,
-                        protocol_for, PROTOCOLS)
+from .protocols import (check_motors, CybergearConfig, DamiaoConfig, impedance_protocols,
+                        LkConfig, PROTOCOLS)
 from .schema import param, section, to_flat
 
 RO = True
@@ -533,16 +533,14 @@ class BalanceConfig:
                 <= m.height_max:
             out.append('height %.3f m outside height_min..height_max (%.3f..%.3f m)'
                        % (self.control.height, m.height_min, m.height_max))
-        try:
-            wheel_limit = protocol_for(self.can.protocol, self.can).torque_limit
-            if self.legs.driven:
-                protocol_for(self.legs.protocol, self.legs)
-        except ValueError as e:   # a model's figures the codec refuses
-            return out + ['motor figures: %s' % e]
-        if self.safety.max_wheel_torque > wheel_limit:
-            out.append("max_wheel_torque %.2f N m above the %s motors' limit %.2f N m "
-                       '(can.%s)' % (self.safety.max_wheel_torque, self.can.protocol,
-                                     wheel_limit, PROTOCOLS[self.can.protocol].config_section))
+        c = self.can   # each protocol judges its figures and its motors' IDs
+        wheel, found = check_motors(c.protocol, c, (c.left_motor_id, c.right_motor_id))
+        out += found + (check_motors(self.legs.protocol, self.legs, self.legs.motor_ids)[1]
+                        if self.legs.driven else [])
+        if wheel is not None and self.safety.max_wheel_torque > wheel.torque_limit:
+            out.append("max_wheel_torque %.2f N m above the %s motors' limit %.2f N m (can.%s)"
+                       % (self.safety.max_wheel_torque, c.protocol, wheel.torque_limit,
+                          wheel.config_section))
         if self.wheel_state.wheel_state_source == 'can' and self.can.protocol != 'mit':
             out.append('wheel_state_source can needs can.protocol mit (wheel speeds from MIT '
                        'replies); use joint_states with %s' % self.can.protocol)

@@ -8,7 +8,7 @@ health, the position's wrap or saturation, its emulator). ``make_protocol(name, 
 builds a codec from keyword arguments, ``protocol_from_config(name, section)`` from its
 configuration section; ``register_protocol`` adds one (a test's, a builder's) at run time.
 """
-from typing import Any, Type
+from typing import Any, Iterable, List, Optional, Tuple, Type
 
 from .base import Frame, MotorFeedback, MotorProtocol
 from .cybergear import CybergearConfig, CybergearProtocol
@@ -53,6 +53,20 @@ def protocol_for(name: str, owner: Any) -> MotorProtocol:
                            else None)
 
 
+def check_motors(name: str, owner: Any,
+                 motor_ids: Iterable[int]) -> Tuple[Optional[MotorProtocol], List[str]]:
+    """
+    Build protocol ``name`` from its section of ``owner`` and judge ``motor_ids`` with it.
+
+    Return (the codec, its id_problems), or (None, why the codec refused the figures).
+    """
+    try:
+        protocol = protocol_for(name, owner)
+    except ValueError as e:
+        return None, ['%s motor figures: %s' % (name, e)]
+    return protocol, protocol.id_problems(motor_ids)
+
+
 def impedance_protocols():
     """Return the names of the protocols that send impedance commands (command_frame): hips."""
     return tuple(n for n, cls in PROTOCOLS.items()
@@ -67,8 +81,8 @@ def register_protocol(cls: Type[MotorProtocol]) -> Type[MotorProtocol]:
     return cls
 
 
-__all__ = ['CybergearConfig', 'CybergearProtocol', 'DamiaoConfig', 'DamiaoProtocol',
-           'DjiC620Protocol', 'Frame', 'impedance_protocols', 'LkConfig', 'LkProtocol',
-           'make_protocol', 'MitCommand', 'MitProtocol', 'MotorFeedback', 'MotorProtocol',
-           'protocol_class', 'protocol_for', 'protocol_from_config', 'PROTOCOLS',
-           'register_protocol']
+__all__ = ['check_motors', 'CybergearConfig', 'CybergearProtocol', 'DamiaoConfig',
+           'DamiaoProtocol', 'DjiC620Protocol', 'Frame', 'impedance_protocols', 'LkConfig',
+           'LkProtocol', 'make_protocol', 'MitCommand', 'MitProtocol', 'MotorFeedback',
+           'MotorProtocol', 'protocol_class', 'protocol_for', 'protocol_from_config',
+           'PROTOCOLS', 'register_protocol']

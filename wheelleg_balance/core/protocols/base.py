@@ -106,6 +106,11 @@ class MotorProtocol(ABC):
         """Frames that make the present position the motors' zero. Never sent automatically."""
         return []
 
+    def id_problems(self, motor_ids: Iterable[int]) -> List[str]:
+        """Return what is wrong with these motor IDs for this protocol (the configuration)."""
+        return ['%s: motor ID %d is no standard CAN ID' % (self.name, i) for i in motor_ids
+                if not 0 <= i <= MAX_STANDARD_ID]
+
     def mode_query_frames(self, motor_ids: Iterable[int]) -> List[Frame]:
         """Frames that ask the motors which control mode they are in (bring-up; none here)."""
         return []

@@ -30,7 +30,7 @@ import struct
 from typing import Dict, Iterable, List, Optional, Tuple
 
 from .base import extended_frame_bytes, Frame, MotorFeedback, MotorProtocol
-from .emulation import EmulatedMotor, rotor_turn_position
+from .emulation import Command, EmulatedMotor, rotor_turn_position
 from ..schema import param
 
 #: Communication types (manual sec. 4.1).
@@ -155,6 +155,11 @@ class CybergearProtocol(MotorProtocol):
     def at_position_end(self, position: float) -> bool:
         """Tell whether an angle reading is within one code of an end (it saturated there)."""
         return abs(position) >= self.p_max * (1.0 - 2.0 / 65535)
+
+    def id_problems(self, motor_ids: Iterable[int]) -> List[str]:
+        """Return the IDs outside 1..127 (CAN_ID) or equal to the host's."""
+        return ['cybergear: motor ID %d outside 1..127 or the host_id' % i for i in motor_ids
+                if not 1 <= i <= 127 or i == self.host_id]
 
     # ---- host side -------------------------------------------------------------------------
 
@@ -341,10 +346,10 @@ class CybergearMotorEmulator(EmulatedMotor):
         if kind == OPERATION_CONTROL:
             if self.run_mode == 0:
                 a, v, kp, kd = _U16X4.unpack(data)
-                self.set_command((from_u16(a, -p.p_max, p.p_max),
-                                  from_u16(v, -p.v_max, p.v_max), from_u16(kp, 0.0, p.kp_max),
-                                  from_u16(kd, 0.0, p.kd_max),
-                                  from_u16(field, -p.t_max, p.t_max)), now)
+                self.set_command(Command(
+                    from_u16(a, -p.p_max, p.p_max), from_u16(v, -p.v_max, p.v_max),
+                    from_u16(kp, 0.0, p.kp_max), from_u16(kd, 0.0, p.kd_max),
+                    from_u16(field, -p.t_max, p.t_max)), now)
         elif kind == ENABLE:
             self.set_enabled(True, now)
         elif kind == STOP:

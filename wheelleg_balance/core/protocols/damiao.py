@@ -107,6 +107,11 @@ class DamiaoProtocol(MitProtocol):
         """Build the codec from its configuration section (DamiaoConfig)."""
         return cls(**section.codec_kwargs())
 
+    def id_problems(self, motor_ids: Iterable[int]) -> List[str]:
+        """Return the IDs a reply cannot name (its 4-bit ID: 1..15) or the feedback ID's."""
+        return ['damiao: motor ID %d outside 1..15 (the reply names 4 bits) or the master_id'
+                % i for i in motor_ids if not 1 <= i <= 15 or i == self.master_id]
+
     # ---- host side -------------------------------------------------------------------------
 
     def clear_error_frames(self, motor_ids: Iterable[int]) -> List[Frame]:
@@ -299,7 +304,7 @@ class DamiaoMotorEmulator(EmulatedMotor):
         elif decoded == 'clear':
             self.error = 0
         elif self.control_mode == MIT_MODE:
-            self.set_command(tuple(decoded[1:]), now)
+            self.set_command(decoded, now)   # a MitCommand: its fields are a Command's
         self.torque(q, q_dot, now)
         status = self.error or (ENABLED if self.enabled else DISABLED)
         t_mos = self.temperature if self.mos_temperature is None else self.mos_temperature

@@ -82,6 +82,10 @@ class DjiC620Protocol(MotorProtocol):
         """Return the largest speed [rad/s] the feedback's int16 rpm field holds."""
         return 32767 * 2.0 * math.pi / 60.0 / self.gear_ratio
 
+    def id_problems(self, motor_ids: Iterable[int]) -> List[str]:
+        """Return the IDs outside the ESC IDs 1..8."""
+        return ['dji_c620: ESC ID %d outside 1..8' % i for i in motor_ids if not 1 <= i <= 8]
+
     def current_code(self, torque: float) -> int:
         """Command code for a motor torque [N m]: rounded, clamped, 0 for NaN/inf."""
         if not -math.inf < torque < math.inf:  # NaN fails both comparisons

@@ -9,18 +9,31 @@ position are here once. ``EmulatedMotors`` puts any protocol's motors on one sim
 
 Conventions as in sim/motor_emulator.py (the MIT and C620 emulators): q, q_dot and the torque
 returned are the *joint's*; the motor's direction (+1 or -1) maps them: motor position =
-direction q - zero. A command is the impedance tuple (position, velocity, kp, kd, torque):
-tau = kp (position - motor position) + kd (velocity - motor speed) + torque, clamped to the
-torque limit; a torque-only protocol sends (0, 0, 0, 0, torque).
+direction q - zero. A command is a ``Command`` (position, velocity, kp, kd, torque): tau = kp
+(position - motor position) + kd (velocity - motor speed) + torque, clamped to the torque
+limit; a torque-only protocol's is ``torque_only(torque)``.
 """
 import math
-from typing import Dict, Iterable, List, Mapping, Optional, Tuple
+from typing import Any, Dict, Iterable, List, Mapping, NamedTuple, Optional, Tuple
 
 from .base import Frame
 
-#: A command: (position [rad], velocity [rad/s], kp [N m/rad], kd [N m s/rad], torque [N m]).
-Command = Tuple[float, float, float, float, float]
 TIMEOUT_ACTIONS = ('zero', 'rest')
+
+
+class Command(NamedTuple):
+    """An impedance command: kp (position - p) + kd (velocity - v) + torque at the motor."""
+
+    position: float   # [rad]
+    velocity: float   # [rad/s]
+    kp: float         # [N m/rad]
+    kd: float         # [N m s/rad]
+    torque: float     # [N m]
+
+
+def torque_only(tau: float) -> Command:
+    """Return the command of a feed-forward torque tau [N m] alone."""
+    return Command(0.0, 0.0, 0.0, 0.0, tau)
 
 
 class EmulatedMotor:
@@ -57,7 +70,8 @@ class EmulatedMotor:
         self.error = 0                        # the protocol's error code or bits (0: none)
         self.zero = 0.0              # motor position [rad] (direction applied) that reads as 0
         self.enabled = self.powered_enabled
-        self.command: Optional[Command] = None
+        #: The command in force (a Command, or any object with its fields: MitCommand).
+        self.command: Optional[Any] = None
         self.motor_torque = 0.0      # torque the motor applies [N m], its own direction
         self.frames = 0              # frames it acted on
         self.timeouts = 0            # times the command timeout fired
@@ -90,7 +104,7 @@ class EmulatedMotor:
         """Act on a frame as the firmware does; return the reply, or None (not for it)."""
         raise NotImplementedError
 
-    def set_command(self, command: Optional[Command], now: float) -> None:
+    def set_command(self, command: Optional[Any], now: float) -> None:
         """Take a new command (None: no torque) received at ``now`` [s]."""
         self.command = command
         self._last_command_time = now
@@ -125,8 +139,8 @@ class EmulatedMotor:
         if not self.enabled or cmd is None or self.error:
             self.motor_torque = 0.0
             return 0.0
-        p, v, kp, kd, tau_ff = cmd
-        tau = kp * (p - self.position(q)) + kd * (v - self.velocity(q_dot)) + tau_ff
+        tau = (cmd.kp * (cmd.position - self.position(q))
+               + cmd.kd * (cmd.velocity - self.velocity(q_dot)) + cmd.torque)
         lim = self.torque_limit
         tau = min(max(tau, -lim), lim) if math.isfinite(tau) else 0.0
         self.motor_torque = tau

@@ -29,7 +29,7 @@ import struct
 from typing import Dict, Iterable, List, NamedTuple, Optional, Tuple, Union
 
 from .base import Frame, frame_bytes, MotorFeedback, MotorProtocol
-from .emulation import EmulatedMotor
+from .emulation import EmulatedMotor, torque_only
 from ..schema import param
 
 #: Command and reply ID of motor i: BASE_ID + i, i in 1..MAX_MOTOR_ID.
@@ -130,6 +130,11 @@ class LkProtocol(MotorProtocol):
     def torque_limit(self) -> float:
         """Return the largest torque [N m] a command asks for (current_limit)."""
         return self._code_limit * self._nm_per_code
+
+    def id_problems(self, motor_ids: Iterable[int]) -> List[str]:
+        """Return the IDs outside 1..32 (ID 0x140 + ID)."""
+        return ['lk: motor ID %d outside 1..%d' % (i, MAX_MOTOR_ID) for i in motor_ids
+                if not 1 <= i <= MAX_MOTOR_ID]
 
     # ---- host side -------------------------------------------------------------------------
 
@@ -311,7 +316,7 @@ class LkMotorEmulator(EmulatedMotor):
         self.frames += 1
         self.last_decoded = decoded
         if isinstance(decoded, int):
-            self.set_command((0.0, 0.0, 0.0, 0.0, decoded * p._nm_per_code), now)
+            self.set_command(torque_only(decoded * p._nm_per_code), now)
             self.enabled = not self.stopped
         elif decoded == 'off':
             self.set_command(None, now)
