@@ -165,3 +165,63 @@ def test_a_second_commander_faults_the_tick_and_its_replies_do_not(make_bench, p
     assert [f.code for f in faults] == ['input_conflict'] and 'another sender' in \
         faults[0].message
     assert no_torque(bench)
+
+
+class MixedBench(LoopBench):
+    """
+    LoopBench with driven legs: wheels and hips each on their protocol's emulators, one bus.
+
+    The hips (IDs 3..6) start at NOMINAL_LEGS with the configured offsets as their zero
+    (``legs.homing: set_zero``: homed at once); the hips' frames go out after the wheels'.
+    """
+
+    def __init__(self, **params):
+        super().__init__(**{'legs.driven': True, **params})
+        loop = self.loop
+        hips = loop.legs.controller.motors
+        self.hip_ids = tuple(hips.motor_ids)
+        for i, q, offset, d in zip(self.hip_ids, bench_module.NOMINAL_LEGS, hips.offsets,
+                                   hips.directions):
+            e = loop.legs.protocol.make_emulator(i, direction=d)
+            e.zero = d * offset
+            self.motors.emulators[i] = e
+            self.motors.joints[i] = (q, 0.0)
+        self.motors.ids = tuple(self.motors.emulators)
+
+    def tick(self, replies=True):
+        """Run one tick; the wheels' and the hips' frames reach the motors, replies come back."""
+        self.t += self.period
+        if replies:
+            self.inputs.frames.extend((self.t, f) for f in self._replies)
+        result = self.loop.tick(self.t, self.inputs)
+        self.inputs.clear()
+        self.sent = list(result.frames) + list(result.leg_frames)
+        self._replies = [r for f in self.sent for r in self.motors.handle(f, self.t)]
+        self.after_tick(result)
+        return self.sent
+
+
+@pytest.mark.parametrize('wheels, hips', [('lk', 'damiao'), ('lk', 'cybergear'),
+                                          ('cybergear', 'damiao')])
+def test_mixed_robots_arm_hold_their_legs_and_disarm(make_bench, wheels, hips):
+    bench = MixedBench(**{'can.protocol': wheels, 'legs.can.protocol': hips,
+                          'max_wheel_torque': LIMIT, 'wheel_state_source': 'joint_states'})
+    req = bench.arm_from_rest()
+    assert req.success, req.message
+    sent = []
+    for _ in range(50):   # 0.1 s balancing
+        bench.feed()
+        sent.append(bench.tick())
+    assert bench.mode == int(Mode.BALANCING), bench.loop.supervisor.faults
+    # legs.command_divider 2: the legs take turns, two hips a tick beside both wheels.
+    assert {len(frames) for frames in sent} == {4}
+    limit = bench.loop.legs.protocol.torque_limit
+    hip_torques = [bench.motors.torque(i, bench.t) for i in bench.hip_ids]
+    assert all(0.0 < abs(tau) <= limit + 1e-9 for tau in hip_torques), hip_torques
+    bench.estop()
+    bench.tick()
+    bench.tick()
+    assert bench.mode == int(Mode.DISARMED)
+    assert not any(e.enabled for e in bench.motors.emulators.values())
+    assert len(bench.motors.ids) == 6
+    assert all(bench.motors.torque(i, bench.t) == 0.0 for i in bench.motors.ids)
