@@ -187,9 +187,8 @@ class MotorProtocol(ABC):
         What a motor set calls for every received frame: a protocol may do it in one pass
         (the MIT codec does). Never raises.
         """
-        if self.reply_motor_id(frame) not in motor_ids:
-            return None
-        return self.decode_feedback(frame)
+        feedback = self.decode_feedback(frame)   # once: reply_motor_id would decode too
+        return feedback if feedback is not None and feedback.motor_id in motor_ids else None
 
 
 def extended_frame_bytes(frame: Frame) -> Optional[bytes]:

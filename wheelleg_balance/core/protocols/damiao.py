@@ -29,7 +29,7 @@ import math
 import struct
 from typing import Iterable, List, Optional, Tuple
 
-from .base import Frame, frame_bytes, MAX_STANDARD_ID, MotorFeedback
+from .base import Frame, frame_bytes, MAX_STANDARD_ID, MotorFeedback, MotorProtocol
 from .emulation import EmulatedMotor, rotor_turn_position
 from .mit import float_to_uint, float_to_uint_wrapping, MitProtocol, uint_to_float
 from ..schema import param
@@ -178,10 +178,7 @@ class DamiaoProtocol(MitProtocol):
                              float(max(data[6], data[7])), status if status >= 8 else 0,
                              status == ENABLED)
 
-    def decode_reply(self, frame: Frame, motor_ids) -> Optional[MotorFeedback]:
-        """Return the reply of one of ``motor_ids`` decoded (decode_feedback), else None."""
-        feedback = self.decode_feedback(frame)
-        return feedback if feedback is not None and feedback.motor_id in motor_ids else None
+    decode_reply = MotorProtocol.decode_reply   # not MIT's one-pass: the reply differs
 
     def reply_motor_id(self, frame: Frame) -> Optional[int]:
         """Return the motor ID (low 4 bits) of a reply on MST_ID, else None."""
