@@ -45,7 +45,9 @@ STATE2_REPLIES = frozenset((TORQUE, 0xA2, 0xA3, 0xA4, 0xA5, 0xA6, 0xA7, 0xA8, RE
 IQ_CODE_MAX = 2048
 MF_CURRENT_MAX = 16.5
 MG_CURRENT_MAX = 33.0
-#: errorState bits of the state-1 reply (V2.35).
+#: errorState bits of the state-1 reply: bit 0 and bit 3 as open RoboMaster drivers name them
+#: (an LkMotorErr_e enum: 0x01 low voltage, 0x08 motor temperature); V2.35's table itself was
+#: not in the stored excerpt (docs/can_protocols.md). Other bits are reported by number.
 ERROR_BITS = {0x01: 'under-voltage', 0x08: 'over-temperature'}
 #: Words of the commands without data (decode_command).
 _SIMPLE = {MOTOR_OFF: 'off', MOTOR_STOP: 'stop', MOTOR_RUN: 'run', READ_STATE1: 'read_state1',
