@@ -166,6 +166,28 @@ def test_poll_decodes_the_replies_received_since_the_last_tick():
         peer.shutdown()
 
 
+def test_poll_drops_the_echoes_of_extended_frames_too():
+    """The echoes of 29-bit ID frames (CyberGear commands) are dropped like standard ones."""
+    from wheelleg_balance.core.protocols import CybergearProtocol
+    channel = 'wlb-%s' % uuid.uuid4().hex
+    peer = VirtualBus(channel=channel)
+    io = CanIo(VirtualBus(channel=channel, receive_own_messages=True), clock=lambda: 7.0)
+    command = CybergearProtocol().torque_frames({1: 0.5})[0]
+    assert command.is_extended_id
+    try:
+        assert io.send([command]) is None
+        # Another node sending the very same command: one copy is the echo, this one is not.
+        peer.send(can.Message(arbitration_id=command.arbitration_id, data=command.data,
+                              is_extended_id=True))
+        frames = []
+        assert io.poll(frames) == 2
+        assert [f for _, f in frames] == [command]
+        assert (io.rx_echoes, io.rx_frames) == (1, 1)
+    finally:
+        io.close()
+        peer.shutdown()
+
+
 def test_poll_drops_the_echoes_of_its_own_frames_once_each():
     """A bus that hands the sender its frames back (udp_multicast): not decoded, not counted."""
     from wheelleg_balance.core.protocols.base import Frame

@@ -137,7 +137,8 @@ def dji_bench(monkeypatch):
     """Return a maker of benches with two C620 ESCs (IDs 1, 2) for wheel motors."""
     monkeypatch.setattr(bench_module, 'wheel_motors',
                         lambda loop: DjiC620Emulator(loop.motors.ids))
-    return lambda: LoopBench(**{'can.protocol': 'dji_c620',
+    # max_wheel_torque: the C620's 20 A are 6 N m (a larger limit is a configuration problem).
+    return lambda: LoopBench(**{'can.protocol': 'dji_c620', 'max_wheel_torque': 6.0,
                                 'wheel_state_source': 'joint_states'})
 
 

@@ -21,12 +21,13 @@ from .lqr import DEFAULT_Q, DEFAULT_R, GAIN_SOURCES
 from .output_regulation import HoldShape
 from .params import IdaPbcGains, RobotParams
 from .pipeline import MODES
-from .protocols import PROTOCOLS
+from .protocols import (check_motors, CybergearConfig, DamiaoConfig, impedance_protocols,
+                        LkConfig, PROTOCOLS)
 from .schema import param, section, to_flat
 
 RO = True
-#: Values of ``can.protocol``.
-PROTOCOL_NAMES = tuple(PROTOCOLS)
+#: Values of ``can.protocol`` and ``legs.can.protocol`` (those with impedance commands).
+PROTOCOL_NAMES, HIP_PROTOCOL_NAMES = tuple(PROTOCOLS), impedance_protocols()
 #: Values of ``clock_source``: what paces the control loop (nodes/control_process.py).
 CLOCK_SOURCES = ('wall', 'imu_stamp')
 #: The test buses (``can.interface``), the only ones ``clock_source: imu_stamp`` may run on: on
@@ -343,6 +344,9 @@ class CanConfig:
                               read_only=RO)
     mit: MitLimits = section(MitLimits, 'mit')
     dji: DjiConfig = section(DjiConfig, 'dji')
+    lk: LkConfig = section(LkConfig, 'lk')
+    cybergear: CybergearConfig = section(CybergearConfig, 'cybergear')
+    damiao: DamiaoConfig = section(DamiaoConfig, 'damiao')
 
     def problems(self) -> List[str]:
         """Check that the two wheel motors have different IDs."""
@@ -433,7 +437,12 @@ class LegsConfig:
                                    'right_rear_knee'], 'joint_states names of the four passive '
                                   "knees (the URDF's), from the five-bar kinematics",
                                   read_only=RO, length=4)
+    protocol: str = param('mit', 'hip motor protocol: %s (its figures in legs.<section>)'
+                          % ' | '.join(HIP_PROTOCOL_NAMES), read_only=RO,
+                          choices=HIP_PROTOCOL_NAMES, name='legs.can.protocol')
     mit: MitLimits = section(MitLimits, 'mit')
+    cybergear: CybergearConfig = section(CybergearConfig, 'cybergear')
+    damiao: DamiaoConfig = section(DamiaoConfig, 'damiao')
 
     def problems(self) -> List[str]:
         """Check that the four hips have different IDs."""
@@ -524,9 +533,14 @@ class BalanceConfig:
                 <= m.height_max:
             out.append('height %.3f m outside height_min..height_max (%.3f..%.3f m)'
                        % (self.control.height, m.height_min, m.height_max))
-        if self.can.protocol == 'mit' and self.safety.max_wheel_torque > self.can.mit.t_max:
-            out.append('max_wheel_torque %.2f N m above the motor limit can.mit.t_max %.2f N m'
-                       % (self.safety.max_wheel_torque, self.can.mit.t_max))
+        c = self.can   # each protocol judges its figures and its motors' IDs
+        wheel, found = check_motors(c.protocol, c, (c.left_motor_id, c.right_motor_id))
+        out += found + (check_motors(self.legs.protocol, self.legs, self.legs.motor_ids)[1]
+                        if self.legs.driven else [])
+        if wheel is not None and self.safety.max_wheel_torque > wheel.torque_limit:
+            out.append("max_wheel_torque %.2f N m above the %s motors' limit %.2f N m (can.%s)"
+                       % (self.safety.max_wheel_torque, c.protocol, wheel.torque_limit,
+                          wheel.config_section))
         if self.wheel_state.wheel_state_source == 'can' and self.can.protocol != 'mit':
             out.append('wheel_state_source can needs can.protocol mit (wheel speeds from MIT '
                        'replies); use joint_states with %s' % self.can.protocol)

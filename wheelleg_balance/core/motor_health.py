@@ -6,8 +6,9 @@ Motor health from the replies: temperature, error codes, a reboot (no rclpy, no 
   sit-down (with the half that is left to brake), or a fault where it cannot run. The two
   thresholds are per motor model (``can.mit.*`` for the wheels, ``legs.mit.*`` for the hips,
   ``can.dji.*``): a motor's figures come from its data sheet.
-- Error code (the 8-byte MIT reply's last byte, CubeMars AK firmware): any code but 0 is a
-  fault with the decoded reason (``ERROR_CODES``); the drive has switched its output off.
+- Error code (the 8-byte MIT reply's last byte, CubeMars AK firmware; CyberGear's fault bits,
+  DaMiao's fault status): any code but 0 is a fault with the reason the protocol decodes
+  (``MotorProtocol.error_reason``); the drive has switched its output off.
 - Reboot: a motor that lost power and came back is in rest mode (no torque) and knows its
   angle only modulo a rotor turn, so its position reading jumps. A reply whose position is off
   the previous reply's extrapolation by more than ``jump_limit`` (after the wrap of the reply
@@ -16,20 +17,19 @@ Motor health from the replies: temperature, error codes, a reboot (no rclpy, no 
 import math
 from typing import List, Optional, Tuple
 
+from .protocols.mit import MIT_ERROR_CODES
 from .safety import MOTOR_ERROR, MOTOR_REBOOTED
 
 #: Share of the torque limit left at temp_max.
 DERATE_FLOOR = 0.5
-#: MIT reply error codes of CubeMars AK firmware (neurobionics/TMotorCANControl mit_can.py,
-#: ERROR_CODES).
-ERROR_CODES = {
-    1: 'motor over-temperature', 2: 'over-current', 3: 'over-voltage', 4: 'under-voltage',
-    5: 'encoder fault', 6: 'phase current unbalance (hardware damage?)',
-}
+#: The MIT reply's error codes (CubeMars AK); other protocols give their own (error_reason).
+ERROR_CODES = MIT_ERROR_CODES
 
 
-def error_reason(code: int) -> str:
-    """Return the decoded reason of a motor error code."""
+def error_reason(code: int, protocol=None) -> str:
+    """Return the decoded reason of a motor error code (of ``protocol``'s replies; MIT's)."""
+    if protocol is not None:
+        return protocol.error_reason(code)
     return ERROR_CODES.get(int(code), 'unknown error code')
 
 
@@ -102,7 +102,7 @@ def judge_motors(sets, wheels, name) -> Tuple[float, Optional[str], List[Tuple[s
             if code:
                 m.error = 0
                 problems.append((MOTOR_ERROR, '%s error %d: %s'
-                                 % (name(m), code, error_reason(code))))
+                                 % (name(m), code, error_reason(code, motors.protocol))))
             if m.rebooted is not None:
                 notable = True
                 problems.append((MOTOR_REBOOTED, '%s %s' % (name(m), m.rebooted)))

@@ -19,7 +19,7 @@ from typing import Any, Dict, List, Optional, Tuple
 from .config import BalanceConfig
 from .kinematics import FiveBarLeg
 from .motors import MotorSet
-from .protocols import make_protocol
+from .protocols import protocol_for
 from .protocols.base import Frame, MotorProtocol
 from .protocols.mit import MitProtocol
 from .safety import ENCODER_MISMATCH, SensorSnapshot
@@ -39,12 +39,13 @@ ANOTHER_SENDER = ('another sender on the bus (another balance_node, a test scrip
 
 
 def build_protocol(cfg: BalanceConfig) -> MotorProtocol:
-    """Build the wheel motors' CAN codec named by ``can.protocol`` (the motor model's ranges)."""
-    can = cfg.can
-    if can.protocol == 'mit':
-        return make_protocol('mit', **can.mit.codec_ranges())
-    return make_protocol(can.protocol, torque_constant=can.dji.torque_constant,
-                         gear_ratio=can.dji.gear_ratio, current_limit=can.dji.current_limit)
+    """Build the wheel motors' CAN codec named by ``can.protocol`` (from its can.* section)."""
+    return protocol_for(cfg.can.protocol, cfg.can)
+
+
+def _model(owner, protocol: MotorProtocol):
+    """Return the figures (temp_derate, temp_max, ...) of ``protocol``'s motors in ``owner``."""
+    return getattr(owner, protocol.config_section, None) or owner.mit
 
 
 def wheel_motors(cfg: BalanceConfig, directions: bool = True) -> MotorSet:
@@ -57,7 +58,7 @@ def wheel_motors(cfg: BalanceConfig, directions: bool = True) -> MotorSet:
 
 def hip_motors(cfg: BalanceConfig) -> MotorSet:
     """Return the four hip motors of ``cfg`` (their directions are the legs' business)."""
-    return MotorSet(MitProtocol(**cfg.legs.mit.codec_ranges()),
+    return MotorSet(protocol_for(cfg.legs.protocol, cfg.legs),
                     [(name, i, 1) for name, i in zip(HIPS, cfg.legs.motor_ids)])
 
 
@@ -136,15 +137,15 @@ class Sensing:
         self._wheels: Optional[JointSample] = None   # newest sample with the wheels
         self.legs_js: Optional[JointSample] = None   # newest sample with the hips
         #: Each motor set with its model's figures (core/motor_health.py).
-        wheel_model = cfg.can.mit if cfg.can.protocol == 'mit' else cfg.can.dji
-        self.health = [(self.motors, wheel_model)] + (
-            [(self.hips, cfg.legs.mit)] if self.hips is not None else [])
+        self.health = [(self.motors, _model(cfg.can, self.protocol))] + (
+            [(self.hips, _model(cfg.legs, self.hips.protocol))] if self.hips is not None else [])
         wrap = 65536.0 / 65535.0 if cfg.wheel_state.position_wraps else math.inf
-        for motors, model in self.health:
-            if isinstance(motors.protocol, MitProtocol):
+        for motors, model in self.health:   # the reboot check where the model sets a limit
+            p = motors.protocol
+            if getattr(model, 'position_jump', None):
                 motors.jump_limit = model.position_jump
-                motors.span = (motors.protocol.p_max - motors.protocol.p_min) * wrap
-                motors.speed_limit = 0.9 * min(-motors.protocol.v_min, motors.protocol.v_max)
+                motors.span = math.inf if p.position_saturates else p.position_span * wrap
+                motors.speed_limit = 0.9 * p.speed_range
         #: Command frames to our motors that this node did not send (a second commander): how
         #: many, the newest's receipt time [s], the motors it addressed, one since the check.
         self.foreign_commands = 0

@@ -155,8 +155,8 @@ class CanIo:
         self.bits = 0
         # Echoes are looked for only where the bus makes them: the robot's sends pay nothing.
         self._track_echoes = hands_back_own_frames(bus)
-        #: (arbitration ID, data) of the frames sent whose echo has not come -> send times [s],
-        #: oldest first (forgotten after ECHO_WINDOW).
+        #: (arbitration ID, data, extended) of the frames sent whose echo has not come -> send
+        #: times [s], oldest first (forgotten after ECHO_WINDOW).
         self._sent = {}
         self.last_tx_error = ''
         self.last_rx_error = ''
@@ -194,8 +194,8 @@ class CanIo:
                         continue
                     data = bytes(msg.data)
                     extended = msg.is_extended_id
-                    if sent and not extended:
-                        key = (msg.arbitration_id, data)
+                    if sent:   # standard and extended IDs (CyberGear) alike
+                        key = (msg.arbitration_id, data, extended)
                         times = sent.get(key)
                         if times:   # our own frame, handed back by the bus
                             del times[0]
@@ -277,8 +277,8 @@ class CanIo:
                     return self.last_tx_error
                 self.tx_frames += 1
                 self.bits += frame_bits(len(f.data), f.is_extended_id)
-                if self._track_echoes and not f.is_extended_id:   # the loop's frames
-                    key = (f.arbitration_id, bytes(f.data))
+                if self._track_echoes:   # the loop's frames
+                    key = (f.arbitration_id, bytes(f.data), f.is_extended_id)
                     self._sent.setdefault(key, []).append(now)
             return None
 

@@ -27,6 +27,7 @@ from ..core.can_budget import BusLoad, max_catch_up
 from ..core.config import BalanceConfig
 from ..core.deadline import DeadlineLoop, TIMING_WINDOW, window_stats
 from ..core.safety import COMMANDING, Mode
+from ..core.sensing import build_protocol
 from ..core.tick_io import PUBLISH_ODOM, PUBLISH_STATE, state_frame, TickInputs
 
 #: Missed deadlines served late, back to back, before a stall is skipped. Catching up keeps the
@@ -100,7 +101,8 @@ class ControlRunner:
     @staticmethod
     def catch_up_limit(cfg: BalanceConfig, legs_own_bus: bool) -> int:
         """Return the ticks a catch-up may serve: MAX_CATCH_UP, fewer with a short TX queue."""
-        per_tick = 2 if cfg.can.protocol == 'mit' else 1   # DJI: one frame for both wheels
+        can = cfg.can   # the protocol knows (the C620: one frame for both wheels)
+        per_tick = build_protocol(cfg).frames_per_tick((can.left_motor_id, can.right_motor_id))
         if cfg.legs.driven and not legs_own_bus:
             per_tick += 4 if cfg.legs.command_divider == 1 else 2   # the legs take turns
         return max_catch_up(cfg.can.tx_queue_len, per_tick, MAX_CATCH_UP)

@@ -125,7 +125,7 @@ def can_status(st: Dict[str, Any], hardware_id: str) -> DiagnosticStatus:
         values[prefix + 'replies'] = m['replies']
         fb = m['feedback']
         if fb is not None:
-            _, position, velocity, torque, temperature, error = fb
+            _, position, velocity, torque, temperature, error = fb[:6]
             values.update({prefix + 'position': position, prefix + 'velocity': velocity,
                            prefix + 'torque': torque, prefix + 'temperature': temperature,
                            prefix + 'error': error})

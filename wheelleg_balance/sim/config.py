@@ -15,8 +15,8 @@ import math
 from typing import List
 
 from .layout import HIP_TORQUE_LIMIT, LEG_JOINTS, WHEEL_TORQUE_LIMIT
-from .motor_emulator import TIMEOUT_ACTIONS
 from ..core.config import MitLimits
+from ..core.protocols.emulation import TIMEOUT_ACTIONS
 from ..core.protocols.mit import MitProtocol
 from ..core.schema import param, section
 

@@ -50,16 +50,16 @@ from typing import Dict, Iterable, List, Mapping, Optional, Tuple
 from ..core.protocols.base import Frame
 from ..core.protocols.dji import (CURRENT_CODE_MAX, CURRENT_MAX, DjiC620Protocol,
                                   ENCODER_COUNTS)
-from ..core.protocols.mit import MitCommand, MitProtocol
+from ..core.protocols.emulation import EmulatedMotor, rotor_turn_position
+from ..core.protocols.mit import MitProtocol
 
 #: Rotor angle window of the first encoder sample after power-up [rad] (position_sensor.c).
 POWER_UP_WINDOW = (-1.5 * math.pi, 0.5 * math.pi)
-TIMEOUT_ACTIONS = ('zero', 'rest')
 
 
-class MitMotorEmulator:
+class MitMotorEmulator(EmulatedMotor):
     """
-    One MIT motor (see the module docstring).
+    One MIT motor (see the module docstring); the shared state is EmulatedMotor's.
 
     motor_id: its standard CAN ID; protocol: the MIT ranges it was built with (default
     MitProtocol(), the AK80-9 class); torque_limit [N m]: what the motor can give (default the
@@ -74,50 +74,11 @@ class MitMotorEmulator:
                  direction: int = 1, command_timeout: float = 0.0,
                  timeout_action: str = 'zero', wrap: bool = True,
                  reply_temperature: bool = False, temperature: float = 25.0):
-        if direction not in (1, -1):
-            raise ValueError('direction must be 1 or -1')
-        if timeout_action not in TIMEOUT_ACTIONS:
-            raise ValueError('timeout_action must be one of %s' % ', '.join(TIMEOUT_ACTIONS))
-        if not gear_ratio > 0.0 or not command_timeout >= 0.0:
-            raise ValueError('gear_ratio must be > 0 and command_timeout >= 0')
-        self.motor_id = int(motor_id)
         self.protocol = protocol if protocol is not None else MitProtocol()
-        self.torque_limit = float(self.protocol.t_max if torque_limit is None else torque_limit)
-        self.gear_ratio = float(gear_ratio)
-        self.direction = int(direction)
-        self.miswired = False
-        self.reply_id: Optional[int] = None   # fault: the ID its replies carry (None: its own)
-        self.command_timeout = float(command_timeout)
-        self.timeout_action = timeout_action
+        super().__init__(motor_id, self.protocol.t_max if torque_limit is None else torque_limit,
+                         gear_ratio, direction, command_timeout, timeout_action, temperature)
         self.wrap = bool(wrap)
         self.reply_temperature = bool(reply_temperature)
-        self.temperature = float(temperature)
-        self.error = 0
-        self.zero = 0.0              # motor position [rad] (direction applied) that reads as 0
-        self.enabled = False         # motor mode
-        self.command: Optional[MitCommand] = None
-        self.motor_torque = 0.0      # torque the motor applies [N m], its own direction
-        self.frames = 0              # frames addressed to it
-        self.timeouts = 0            # times the command timeout fired
-        self.last_decoded = None     # the last frame decoded: 'enter', 'exit', 'zero', MitCommand
-        self._last_command_time = -math.inf
-
-    # ---- the motor's view of the joint ----------------------------------------------------
-
-    @property
-    def effective_direction(self) -> int:
-        """Return the direction the motor really turns (the configured one unless miswired)."""
-        return -self.direction if self.miswired else self.direction
-
-    def position(self, q: float) -> float:
-        """Return the motor's multi-turn output position [rad] for the joint angle q [rad]."""
-        return self.effective_direction * q - self.zero
-
-    def velocity(self, q_dot: float) -> float:
-        """Return the motor's output speed [rad/s] for the joint speed q_dot [rad/s]."""
-        return self.effective_direction * q_dot
-
-    # ---- frames ---------------------------------------------------------------------------
 
     def handle(self, frame: Frame, q: float, q_dot: float, now: float) -> Optional[Frame]:
         """
@@ -135,72 +96,29 @@ class MitMotorEmulator:
         self.frames += 1
         self.last_decoded = decoded
         if decoded == 'enter':
-            if not self.enabled:
-                self.enabled = True
-                self.command = None      # start from zero torque, not a stale command
-            self._last_command_time = now
+            self.set_enabled(True, now)   # from zero torque, not a stale command
         elif decoded == 'exit':
             self.enabled = False
             self.command = None
         elif decoded == 'zero':
             if not self.enabled:
-                self.zero = self.effective_direction * q
+                self.set_zero_here(q)
         else:
-            self.command = decoded
-            self._last_command_time = now
+            self.set_command(decoded, now)
         self.torque(q, q_dot, now)
         return self.protocol.encode_reply(
-            self.motor_id if self.reply_id is None else self.reply_id, self.position(q),
-            self.velocity(q_dot), self.motor_torque,
+            self.own_reply_id, self.position(q), self.velocity(q_dot), self.motor_torque,
             temperature=self.temperature if self.reply_temperature else None,
             error=self.error, wrap=self.wrap)
 
-    def torque(self, q: float, q_dot: float, now: float) -> float:
+    def power_up_position(self, position: float) -> float:
         """
-        Return the joint torque [N m] the motor applies now (zero outside motor mode).
+        Return the reading after power-up: the position modulo one rotor turn.
 
-        The impedance law on the motor's own position and speed, clamped to the torque limit,
-        mapped to the joint through the direction. Also applies the command timeout.
+        The rotor angle from the stored zero, wrapped into POWER_UP_WINDOW, over the gear
+        ratio; the stored zero itself is kept.
         """
-        cmd = self.command
-        if self.enabled and self.command_timeout > 0.0 \
-                and now - self._last_command_time > self.command_timeout:
-            self.timeouts += 1
-            self._last_command_time = math.inf   # fire once per silence
-            self.command = cmd = None
-            if self.timeout_action == 'rest':
-                self.enabled = False
-        if not self.enabled or cmd is None or self.error:
-            self.motor_torque = 0.0
-            return 0.0
-        tau = (cmd.kp * (cmd.position - self.position(q))
-               + cmd.kd * (cmd.velocity - self.velocity(q_dot)) + cmd.torque)
-        lim = self.torque_limit
-        tau = min(max(tau, -lim), lim) if math.isfinite(tau) else 0.0
-        self.motor_torque = tau
-        return self.effective_direction * tau
-
-    # ---- scenario -------------------------------------------------------------------------
-
-    def reboot(self, q: float) -> None:
-        """
-        Power-cycle at joint angle q [rad]: rest mode, no command, position modulo a rotor turn.
-
-        The reading afterwards is the rotor angle from the stored zero, wrapped into
-        POWER_UP_WINDOW, over the gear ratio; the stored zero itself is kept.
-        """
-        self.enabled = False
-        self.command = None
-        self.motor_torque = 0.0
-        self.error = 0
-        lo, hi = POWER_UP_WINDOW
-        rotor = self.gear_ratio * self.position(q)
-        rotor = hi - (hi - rotor) % (hi - lo)        # into (lo, hi]
-        self.zero = self.effective_direction * q - rotor / self.gear_ratio
-
-    def set_temperature(self, temperature: float) -> None:
-        """Set the temperature [deg C] reported in 8-byte replies."""
-        self.temperature = float(temperature)
+        return rotor_turn_position(position, self.gear_ratio, POWER_UP_WINDOW)
 
     def set_error(self, code: int) -> None:
         """

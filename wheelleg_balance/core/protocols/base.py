@@ -2,16 +2,21 @@
 The interface every CAN motor protocol implements (pure bytes: no python-can here).
 
 A protocol turns wheel-motor torques into CAN frames and motor replies into MotorFeedback.
-The node wraps ``Frame`` into ``can.Message`` and back; the controllers never see a protocol,
-so a new motor family is one new module here (see docs/can_protocols.md).
+The node wraps ``Frame`` into ``can.Message`` and back; the controllers never see a protocol.
+Beside the frames, a protocol answers what the rest of the package would otherwise branch on
+(``frames_per_tick``, ``position_span`` and ``position_saturates``, ``speed_range``,
+``error_reason``, ``clear_error_frames``, ``set_zero_frames``, ``make_emulator``,
+``from_config``): see docs/can_protocols.md.
 Torques are motor torques [N m] with the mounting direction already applied
 (core/actuation.py); positions [rad] and velocities [rad/s] are at the motor's output shaft.
 """
 from abc import ABC, abstractmethod
-from typing import Dict, Iterable, List, NamedTuple, Optional, Tuple
+import math
+from typing import Any, Dict, Iterable, List, NamedTuple, Optional, Tuple
 
-#: Largest standard (11-bit) CAN identifier.
+#: Largest standard (11-bit) and extended (29-bit) CAN identifiers.
 MAX_STANDARD_ID = 0x7FF
+MAX_EXTENDED_ID = 0x1FFFFFFF
 
 
 class Frame(NamedTuple):
@@ -28,7 +33,8 @@ class MotorFeedback(NamedTuple):
 
     motor_id: the motor's ID on the bus; position [rad]; velocity [rad/s]; torque [N m]
     (output shaft, motor direction); temperature [deg C] or None when the frame carries none;
-    error: the motor's error code or None when the frame carries none.
+    error: the motor's error code or None when the frame carries none (0: no error); enabled:
+    whether the reply says the motor is in its torque mode (None: the reply does not say).
     """
 
     motor_id: int
@@ -37,6 +43,7 @@ class MotorFeedback(NamedTuple):
     torque: float
     temperature: Optional[float] = None
     error: Optional[int] = None
+    enabled: Optional[bool] = None
 
 
 class MotorProtocol(ABC):
@@ -50,6 +57,88 @@ class MotorProtocol(ABC):
 
     #: Short name, the value of the node's ``can.protocol`` parameter.
     name = ''
+    #: The configuration section of its figures (``can.<config_section>``, and under ``legs``
+    #: for a protocol the hips can speak); '' or a missing section: the class defaults.
+    config_section = ''
+    #: The reply's position field [rad]: the span after which it wraps (inf: it neither wraps
+    #: nor ends), or, with position_saturates, the span whose ends it sticks at.
+    position_span = math.inf
+    position_saturates = False
+
+    @property
+    def torque_limit(self) -> float:
+        """Return the largest torque [N m] a command can ask for (inf: none known)."""
+        return math.inf
+
+    @property
+    def speed_range(self) -> float:
+        """Return the largest speed [rad/s] the reply's field holds (inf: no limit)."""
+        return math.inf
+
+    def position_step(self, previous: float, position: float) -> float:
+        """
+        Return the change [rad] from one reply's position to the next one's.
+
+        Modulo position_span (the shortest way) where the field wraps, so a caller that adds
+        the steps unwraps a single-turn or wrapping reading; plain where it does not. Valid
+        while the joint moves less than half the span between two replies (speed_range times
+        the gap tells a caller when it may have moved more).
+        """
+        d = position - previous
+        span = self.position_span
+        if not self.position_saturates and 0.0 < span < math.inf:
+            d = (d + 0.5 * span) % span - 0.5 * span
+        return d
+
+    def at_position_end(self, position: float) -> bool:
+        """Tell whether a saturating position field reads one of its ends (position unknown)."""
+        return False
+
+    def frames_per_tick(self, motor_ids: Iterable[int]) -> int:
+        """Return how many frames one control tick sends to ``motor_ids`` (torque_frames)."""
+        return len(self.torque_frames(dict.fromkeys(motor_ids, 0.0)))
+
+    def clear_error_frames(self, motor_ids: Iterable[int]) -> List[Frame]:
+        """Frames that clear the motors' latched errors (none where the protocol has no such)."""
+        return []
+
+    def set_zero_frames(self, motor_ids: Iterable[int]) -> List[Frame]:
+        """Frames that make the present position the motors' zero. Never sent automatically."""
+        return []
+
+    def id_problems(self, motor_ids: Iterable[int]) -> List[str]:
+        """Return what is wrong with these motor IDs for this protocol (the configuration)."""
+        return ['%s: motor ID %d is no standard CAN ID' % (self.name, i) for i in motor_ids
+                if not 0 <= i <= MAX_STANDARD_ID]
+
+    def mode_query_frames(self, motor_ids: Iterable[int]) -> List[Frame]:
+        """Frames that ask the motors which control mode they are in (bring-up; none here)."""
+        return []
+
+    def mode_problem(self, frame: Frame) -> Optional[Tuple[int, Optional[str]]]:
+        """
+        Judge an answer to mode_query_frames: (motor ID, what is wrong and its fix, or None).
+
+        None for a frame that is no such answer. Never raises.
+        """
+        return None
+
+    def error_reason(self, code: int) -> str:
+        """Return the meaning of the reply's error code ``code`` (not 0) in words."""
+        return 'error code 0x%X' % int(code)
+
+    def make_emulator(self, motor_id: int, **options) -> Any:
+        """
+        Return the emulated motor ``motor_id`` of this protocol (core/protocols/emulation.py).
+
+        For the simulated robot and the fault rig; options are the emulator's.
+        """
+        raise NotImplementedError('no emulator for protocol %r here' % self.name)
+
+    @classmethod
+    def from_config(cls, section: Any) -> 'MotorProtocol':
+        """Build the codec from its configuration section (codec_kwargs); None: defaults."""
+        return cls() if section is None else cls(**section.codec_kwargs())
 
     @abstractmethod
     def enable_frames(self, motor_ids: Iterable[int]) -> List[Frame]:
@@ -98,9 +187,21 @@ class MotorProtocol(ABC):
         What a motor set calls for every received frame: a protocol may do it in one pass
         (the MIT codec does). Never raises.
         """
-        if self.reply_motor_id(frame) not in motor_ids:
+        feedback = self.decode_feedback(frame)   # once: reply_motor_id would decode too
+        return feedback if feedback is not None and feedback.motor_id in motor_ids else None
+
+
+def extended_frame_bytes(frame: Frame) -> Optional[bytes]:
+    """Return an extended frame's data as bytes; None if standard or malformed (never raises)."""
+    try:
+        if not frame.is_extended_id or not 0 <= frame.arbitration_id <= MAX_EXTENDED_ID:
             return None
-        return self.decode_feedback(frame)
+        if isinstance(frame.data, int):
+            return None
+        data = bytes(frame.data)
+        return data if len(data) <= 8 else None
+    except (AttributeError, TypeError, ValueError):
+        return None
 
 
 def frame_bytes(frame: Frame) -> Optional[bytes]:

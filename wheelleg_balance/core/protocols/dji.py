@@ -47,6 +47,7 @@ class DjiC620Protocol(MotorProtocol):
     """
 
     name = 'dji_c620'
+    config_section = 'dji'
 
     def __init__(self, torque_constant: float = M3508_TORQUE_CONSTANT,
                  gear_ratio: float = M3508_GEAR_RATIO, current_limit: float = CURRENT_MAX):
@@ -57,6 +58,33 @@ class DjiC620Protocol(MotorProtocol):
         self.current_limit = float(current_limit)
         self._code_per_nm = CURRENT_CODE_MAX / CURRENT_MAX / self.torque_constant
         self._code_limit = int(self.current_limit * CURRENT_CODE_MAX / CURRENT_MAX)
+
+    @classmethod
+    def from_config(cls, section) -> 'DjiC620Protocol':
+        """Build the codec from a core/config.py DjiConfig section."""
+        if section is None:
+            return cls()
+        return cls(torque_constant=section.torque_constant, gear_ratio=section.gear_ratio,
+                   current_limit=section.current_limit)
+
+    @property
+    def position_span(self) -> float:
+        """Return the span [rad] of the feedback's position: one rotor turn at the output."""
+        return 2.0 * math.pi / self.gear_ratio
+
+    @property
+    def torque_limit(self) -> float:
+        """Return the largest torque [N m] a command can ask for (current_limit)."""
+        return self._code_limit * CURRENT_MAX / CURRENT_CODE_MAX * self.torque_constant
+
+    @property
+    def speed_range(self) -> float:
+        """Return the largest speed [rad/s] the feedback's int16 rpm field holds."""
+        return 32767 * 2.0 * math.pi / 60.0 / self.gear_ratio
+
+    def id_problems(self, motor_ids: Iterable[int]) -> List[str]:
+        """Return the IDs outside the ESC IDs 1..8."""
+        return ['dji_c620: ESC ID %d outside 1..8' % i for i in motor_ids if not 1 <= i <= 8]
 
     def current_code(self, torque: float) -> int:
         """Command code for a motor torque [N m]: rounded, clamped, 0 for NaN/inf."""

@@ -24,6 +24,12 @@ ENTER_MOTOR_MODE = bytes((0xFF,) * 7 + (0xFC,))
 EXIT_MOTOR_MODE = bytes((0xFF,) * 7 + (0xFD,))
 SET_ZERO_POSITION = bytes((0xFF,) * 7 + (0xFE,))
 _SPECIAL = {ENTER_MOTOR_MODE: 'enter', EXIT_MOTOR_MODE: 'exit', SET_ZERO_POSITION: 'zero'}
+#: 8-byte reply error codes of CubeMars AK firmware (neurobionics/TMotorCANControl mit_can.py,
+#: ERROR_CODES).
+MIT_ERROR_CODES = {
+    1: 'motor over-temperature', 2: 'over-current', 3: 'over-voltage', 4: 'under-voltage',
+    5: 'encoder fault', 6: 'phase current unbalance (hardware damage?)',
+}
 
 
 def float_to_uint(x: float, x_min: float, x_max: float, bits: int) -> int:
@@ -90,6 +96,7 @@ class MitProtocol(MotorProtocol):
     """
 
     name = 'mit'
+    config_section = 'mit'
 
     def __init__(self, p_min: float = -12.5, p_max: float = 12.5, v_min: float = -50.0,
                  v_max: float = 50.0, kp_max: float = 500.0, kd_max: float = 5.0,
@@ -106,6 +113,8 @@ class MitProtocol(MotorProtocol):
         self.kp_max, self.kd_max = float(kp_max), float(kd_max)
         self.t_min, self.t_max = float(t_min), float(t_max)
         self.master_id = int(master_id)
+        #: The reply's position field wraps (float_to_uint_wrapping) every p_max - p_min.
+        self.position_span = self.p_max - self.p_min
         # Torque-only command (p = v = kp = kd = 0): the first six bytes and kd's low nibble
         # never change, so a tick only packs the 12-bit torque.
         p0 = float_to_uint(0.0, self.p_min, self.p_max, 16)
@@ -122,6 +131,25 @@ class MitProtocol(MotorProtocol):
         #: The newest command's kp and kd and their codes (command_frame encodes them anew
         #: only when they change).
         self._gain_codes = (math.nan, math.nan, 0, 0)
+
+    @classmethod
+    def from_config(cls, section) -> 'MitProtocol':
+        """Build the codec from a core/config.py MitLimits section (its codec_ranges)."""
+        return cls() if section is None else cls(**section.codec_ranges())
+
+    @property
+    def torque_limit(self) -> float:
+        """Return the largest torque [N m] a command can ask for (the T range's)."""
+        return min(-self.t_min, self.t_max)
+
+    @property
+    def speed_range(self) -> float:
+        """Return the largest speed [rad/s] the reply's velocity field holds."""
+        return min(-self.v_min, self.v_max)
+
+    def error_reason(self, code: int) -> str:
+        """Return the meaning of an 8-byte reply's error code (CubeMars AK firmware)."""
+        return MIT_ERROR_CODES.get(int(code), 'unknown error code')
 
     # ---- host side -------------------------------------------------------------------------
 
@@ -257,7 +285,7 @@ class MitProtocol(MotorProtocol):
         return _feedback(MotorFeedback, (
             motor_id, ((data[1] << 8) | data[2]) * p_span / 65535 + p_min,
             ((data[3] << 4) | (d4 >> 4)) * v_span / 4095 + v_min,
-            (((d4 & 0xF) << 8) | data[5]) * t_span / 4095 + t_min, temperature, error))
+            (((d4 & 0xF) << 8) | data[5]) * t_span / 4095 + t_min, temperature, error, None))
 
     def reply_motor_id(self, frame: Frame) -> Optional[int]:
         """Return byte 0 of what decode_feedback would accept as a reply, else None."""

@@ -1,0 +1,227 @@
+"""
+The control tick on LK, CyberGear and DaMiao wheel motors (issue 31): arm, torque, disarm, faults.
+
+The fault suite's bench (validation/faults/bench.LoopBench: BalanceLoop on a virtual clock)
+with its wheel motors replaced by each protocol's own emulator (core/protocols/emulation.py,
+``make_emulator``): what the tick sends is what the emulated firmware acts on, its replies are
+what the tick reads. Wheel speeds come from joint states (``wheel_state_source: can`` reads
+MIT replies only so far); max_wheel_torque 4 N m is within each model's limit.
+"""
+import math
+
+import pytest
+from wheelleg_balance.core.protocols.emulation import EmulatedMotors
+from wheelleg_balance.core.safety import Mode
+import wheelleg_balance.validation.faults.bench as bench_module
+from wheelleg_balance.validation.faults.bench import LoopBench, make_imu
+
+PROTOCOLS = ('lk', 'cybergear', 'damiao')
+LIMIT = 4.0
+
+
+@pytest.fixture
+def make_bench(monkeypatch):
+    """Return a maker of armed benches whose wheel motors speak ``protocol``."""
+    monkeypatch.setattr(bench_module, 'wheel_motors', lambda loop: EmulatedMotors(
+        loop.protocol, loop.motors.ids, {m.motor_id: m.direction for m in loop.motors.motors}))
+
+    def make(protocol, wheel_angle=0.0, **params):
+        bench = LoopBench(**{'can.protocol': protocol, 'max_wheel_torque': LIMIT,
+                             'wheel_state_source': 'joint_states', **params})
+        bench.set_wheel_motion((wheel_angle, 0.0), (0.0, 0.0))   # before the first reply
+        req = bench.arm_from_rest()
+        assert req.success, req.message
+        assert bench.mode == int(Mode.BALANCING)
+        return bench
+    return make
+
+
+def lean(bench, ticks=5):
+    for _ in range(ticks):
+        bench.feed(make_imu(0.3, 0.0))
+        bench.tick()
+
+
+def applied(bench):
+    """Return the joint torques the emulated motors apply now [N m] (left, right)."""
+    return [bench.motors.torque(i, bench.t) for i in bench.loop.motors.ids]
+
+
+def no_torque(bench) -> bool:
+    """Tell whether both motors give none: zero, or the zero command's code (one step)."""
+    step = 2.0 * bench.loop.protocol.torque_limit / 4095   # the coarsest field: 12 bits
+    return all(abs(tau) <= step for tau in applied(bench))
+
+
+@pytest.mark.parametrize('protocol', PROTOCOLS)
+def test_the_tick_drives_the_motors_and_disarms_them(make_bench, protocol):
+    bench = make_bench(protocol)
+    lean(bench)   # leaning forward: the torque saturates at max_wheel_torque
+    assert bench.wheel_torques() == (pytest.approx(LIMIT), pytest.approx(LIMIT))
+    # Both wheels forward at the shaft, the right motor mirrored by its direction (-1); one
+    # code step of each protocol's torque field at most.
+    assert applied(bench) == [pytest.approx(LIMIT, abs=0.01)] * 2
+    bench.estop()
+    bench.tick()
+    assert bench.mode == int(Mode.DISARMED)
+    assert applied(bench) == [0.0, 0.0]   # out of torque mode: nothing at all
+    assert not any(e.enabled for e in bench.motors.emulators.values())
+
+
+@pytest.mark.parametrize('protocol', PROTOCOLS)
+def test_a_silent_motor_faults(make_bench, protocol):
+    bench = make_bench(protocol)
+    bench.motors.silent.add(bench.loop.motors.ids[0])
+    for _ in range(100):   # 0.2 s
+        bench.feed()
+        bench.tick()
+        if bench.mode == int(Mode.FAULT):
+            break
+    assert bench.mode == int(Mode.FAULT)
+    assert no_torque(bench)
+
+
+@pytest.mark.parametrize('protocol, code, reason', [
+    ('cybergear', 0b000100, 'over-temperature'), ('cybergear', 0b000001, 'under-voltage'),
+    ('damiao', 0xB, 'MOS over-temperature'), ('damiao', 0xA, 'over-current')])
+def test_a_motor_fault_faults_the_tick_with_the_protocols_reason(make_bench, protocol, code,
+                                                                 reason):
+    bench = make_bench(protocol)
+    left = bench.loop.motors.ids[0]
+    bench.motors.motor(left).set_error(code)
+    for _ in range(2):   # the motor answers with the fault, the next tick reads it
+        bench.feed()
+        bench.tick()
+    assert bench.mode == int(Mode.FAULT)
+    faults = bench.loop.supervisor.faults
+    assert [f.code for f in faults] == ['motor_error'] and reason in faults[0].message
+    assert no_torque(bench)
+
+
+@pytest.mark.parametrize('protocol', PROTOCOLS)
+def test_an_over_temperature_sits_down(make_bench, protocol):
+    bench = make_bench(protocol, fall_angle=1.0)
+    model = getattr(bench.config.can, protocol)
+    bench.motors.motor(bench.loop.motors.ids[1]).set_temperature(model.temp_max + 1.0)
+    events = []
+    for _ in range(3):
+        lean(bench, 1)
+        events += bench.loop.last_result.events
+    assert bench.mode == int(Mode.SITTING)
+    assert any('deg C' in text and 'temp_max' in text for _, text in events), events
+
+
+@pytest.mark.parametrize('protocol', ('cybergear', 'damiao'))
+def test_a_reboot_that_moves_the_reading_faults(make_bench, protocol):
+    # Both lose the turn count at power-up (CyberGear also its zero): 5 rad reads otherwise
+    # (DaMiao: within +-pi, 5 - 2 pi; CyberGear: within a rotor turn of its 7.75:1 gear).
+    bench = make_bench(protocol, wheel_angle=5.0)
+    left = bench.loop.motors.ids[0]
+    bench.motors.motor(left).reboot(5.0)
+    for _ in range(3):
+        bench.feed()
+        bench.tick()
+    assert bench.mode == int(Mode.FAULT)
+    assert [f.code for f in bench.loop.supervisor.faults] == ['motor_rebooted']
+
+
+def test_an_lk_reboot_loses_nothing_the_tick_needs(make_bench):
+    # LK's single-turn encoder is absolute and the motor takes the next torque command after
+    # power-up: the reading stays, the torque comes back at once (a boot's silence is the
+    # liveness check's, test_a_silent_motor_faults).
+    bench = make_bench('lk', wheel_angle=3.0)
+    left = bench.loop.motors.ids[0]
+    lean(bench, 3)
+    bench.motors.motor(left).reboot(3.0)
+    assert applied(bench)[0] == 0.0
+    lean(bench, 3)
+    assert bench.mode == int(Mode.BALANCING)
+    assert applied(bench)[0] == pytest.approx(LIMIT, abs=0.01)
+    fb = bench.loop.motors.by_id[left].feedback
+    assert fb.position == pytest.approx(3.0, abs=1e-3) and math.isfinite(fb.velocity)
+
+
+def _foreign_commands():
+    """Per protocol: a command of another sender to wheel motor 1 (not one of ours)."""
+    from wheelleg_balance.core.protocols import make_protocol
+    lk, cg, dm = (make_protocol(n) for n in PROTOCOLS)
+    return {'lk': lk.torque_frames({1: 0.5})[0],                       # 0xA1 on 0x141
+            'cybergear': cg.command_frame(1, 0.0, 0.0, 5.0, 0.1, 0.0),  # type 1, kp 5
+            'damiao': dm.command_frame(1, 0.0, 0.0, 5.0, 0.1, 0.0)}     # MIT on ID 1
+
+
+@pytest.mark.parametrize('protocol', PROTOCOLS)
+def test_a_second_commander_faults_the_tick_and_its_replies_do_not(make_bench, protocol):
+    bench = make_bench(protocol)
+    for _ in range(25):   # the motors' own replies (and LK's run echo) are no commands
+        bench.feed()
+        bench.tick()
+    assert bench.mode == int(Mode.BALANCING)
+    bench.feed()
+    bench.inputs.frames.append((bench.t + bench.period, _foreign_commands()[protocol]))
+    bench.tick()
+    assert bench.mode == int(Mode.FAULT)
+    faults = bench.loop.supervisor.faults
+    assert [f.code for f in faults] == ['input_conflict'] and 'another sender' in \
+        faults[0].message
+    assert no_torque(bench)
+
+
+class MixedBench(LoopBench):
+    """
+    LoopBench with driven legs: wheels and hips each on their protocol's emulators, one bus.
+
+    The hips (IDs 3..6) start at NOMINAL_LEGS with the configured offsets as their zero
+    (``legs.homing: set_zero``: homed at once); the hips' frames go out after the wheels'.
+    """
+
+    def __init__(self, **params):
+        super().__init__(**{'legs.driven': True, **params})
+        loop = self.loop
+        hips = loop.legs.controller.motors
+        self.hip_ids = tuple(hips.motor_ids)
+        for i, q, offset, d in zip(self.hip_ids, bench_module.NOMINAL_LEGS, hips.offsets,
+                                   hips.directions):
+            e = loop.legs.protocol.make_emulator(i, direction=d)
+            e.zero = d * offset
+            self.motors.emulators[i] = e
+            self.motors.joints[i] = (q, 0.0)
+        self.motors.ids = tuple(self.motors.emulators)
+
+    def tick(self, replies=True):
+        """Run one tick; the wheels' and the hips' frames reach the motors, replies come back."""
+        self.t += self.period
+        if replies:
+            self.inputs.frames.extend((self.t, f) for f in self._replies)
+        result = self.loop.tick(self.t, self.inputs)
+        self.inputs.clear()
+        self.sent = list(result.frames) + list(result.leg_frames)
+        self._replies = [r for f in self.sent for r in self.motors.handle(f, self.t)]
+        self.after_tick(result)
+        return self.sent
+
+
+@pytest.mark.parametrize('wheels, hips', [('lk', 'damiao'), ('lk', 'cybergear'),
+                                          ('cybergear', 'damiao')])
+def test_mixed_robots_arm_hold_their_legs_and_disarm(make_bench, wheels, hips):
+    bench = MixedBench(**{'can.protocol': wheels, 'legs.can.protocol': hips,
+                          'max_wheel_torque': LIMIT, 'wheel_state_source': 'joint_states'})
+    req = bench.arm_from_rest()
+    assert req.success, req.message
+    sent = []
+    for _ in range(50):   # 0.1 s balancing
+        bench.feed()
+        sent.append(bench.tick())
+    assert bench.mode == int(Mode.BALANCING), bench.loop.supervisor.faults
+    # legs.command_divider 2: the legs take turns, two hips a tick beside both wheels.
+    assert {len(frames) for frames in sent} == {4}
+    limit = bench.loop.legs.protocol.torque_limit
+    hip_torques = [bench.motors.torque(i, bench.t) for i in bench.hip_ids]
+    assert all(0.0 < abs(tau) <= limit + 1e-9 for tau in hip_torques), hip_torques
+    bench.estop()
+    bench.tick()
+    bench.tick()
+    assert bench.mode == int(Mode.DISARMED)
+    assert not any(e.enabled for e in bench.motors.emulators.values())
+    assert len(bench.motors.ids) == 6
+    assert all(bench.motors.torque(i, bench.t) == 0.0 for i in bench.motors.ids)
