@@ -486,31 +486,65 @@ def height_grid(step: float = 0.01, p: RobotParams = RobotParams()) -> np.ndarra
     return np.linspace(p.height_min, p.height_max, n)
 
 
+def delayed(loop: StateSpace, ticks: int) -> StateSpace:
+    """
+    Return ``loop`` with ``ticks`` more ticks of delay at its input: L(z) z^-ticks.
+
+    A measured actuator latency (identification's motor delay) as part of the loop, so that the
+    margins are what is left beyond it. ``loop`` must be strictly proper (D = 0).
+    """
+    if ticks <= 0:
+        return loop
+    A, B, C = (np.asarray(m, dtype=float) for m in (loop.A, loop.B, loop.C))
+    n, m = A.shape[0], int(ticks)
+    Ad = np.zeros((n + m, n + m))
+    Ad[:n, :n] = A
+    Ad[:n, n + m - 1:] = B.reshape(n, 1)   # the last of the register drives the loop
+    for i in range(1, m):
+        Ad[n + i, n + i - 1] = 1.0
+    Bd = np.zeros((n + m, 1))
+    Bd[n, 0] = 1.0
+    Cd = np.append(C.reshape(n), np.zeros(m)).reshape(1, n + m)
+    return StateSpace(Ad, Bd, Cd, np.zeros((1, 1)), dt=loop.dt)
+
+
+def delay_ticks(delay: float, dt: float = CONTROL_PERIOD) -> int:
+    """Return an actuator delay [s] as whole ticks of dt [s], rounded up (the safe side)."""
+    return max(0, math.ceil(delay / dt - 1e-6))
+
+
 def certify(controller_name: str, gains_set: str, heights: Optional[Sequence[float]] = None,
-            cfg: BalanceConfig = BalanceConfig()) -> List[Margins]:
+            cfg: BalanceConfig = BalanceConfig(), extra_ticks: int = 0,
+            plant: Optional[RobotParams] = None) -> List[Margins]:
     """
     Return the Margins of ``controller_name`` at ``gains_set`` for every height [m].
 
     controller_name: one of core/pipeline.py CONTROLLER_NAMES (ida_pbc, output_regulation,
     lqr); gains_set: one of GAIN_SETS; heights: default every 1 cm over height_min..height_max;
-    cfg: the configuration (robot, observer period, default gains).
+    cfg: the configuration (robot, observer period, default gains); extra_ticks: ticks of
+    actuator delay in the loop (``delay_ticks``); plant: the robot the loop is closed on when
+    it is not the one cfg's controllers are built for (default: cfg's).
     """
     if controller_name not in CONTROLLER_NAMES:
         raise ValueError('unknown controller %r (one of %s)'
                          % (controller_name, ', '.join(CONTROLLER_NAMES)))
     if heights is None:
         heights = height_grid(0.01, cfg.model)
-    return core_margins(build_core(gains_set, cfg), controller_name, heights, gains_set)
+    return core_margins(build_core(gains_set, cfg), controller_name, heights, gains_set,
+                        extra_ticks, plant)
 
 
 def core_margins(core: BalanceCore, controller_name: str, heights: Sequence[float],
-                 gains_set: str = '') -> List[Margins]:
+                 gains_set: str = '', extra_ticks: int = 0,
+                 plant: Optional[RobotParams] = None) -> List[Margins]:
     """
     Return the Margins of ``core``'s controller ``controller_name`` at every height [m].
 
     ``certify`` for a core built elsewhere (e.g. the tuning's candidates); gains_set: the
-    label the Margins carry.
+    label the Margins carry; extra_ticks, plant: as ``certify``'s.
     """
-    return [loop_margins(build_loop(core.controllers[controller_name], core.observer, float(l),
-                                    core.p, core.dt), float(l), controller_name, gains_set)
+    p = plant or core.p
+    return [loop_margins(delayed(build_loop(core.controllers[controller_name], core.observer,
+                                            float(l), p, core.dt), extra_ticks),
+                         float(l), controller_name, gains_set)
             for l in heights]
