@@ -188,7 +188,7 @@ def controller_jacobian(controller, l: float, step: float = JACOBIAN_STEP) -> np
 
 
 def plant_matrices(l: float, p: RobotParams, dt: float = CONTROL_PERIOD,
-                   radius_ratio: float = 1.0) -> tuple:
+                   radius_ratio: float = 1.0, inertia: float = 0.0) -> tuple:
     """
     Return (Ap 5x5, Bp (5,), Cp 4x5): the plant side of the loop at height l [m].
 
@@ -198,9 +198,10 @@ def plant_matrices(l: float, p: RobotParams, dt: float = CONTROL_PERIOD,
     Input: the command u_k [N]. Outputs, what the tick measures: [theta~, theta_dot, x, x_dot].
     radius_ratio: the controller's wheel radius over the plant's, when the controller was built
     for another robot: its force u becomes radius_ratio u on p (tau = r_c u / 2, F = 2 tau / r_p)
-    and its odometry reads radius_ratio times the true x and x_dot.
+    and its odometry reads radius_ratio times the true x and x_dot. inertia: the pendulum's own
+    inertia about its centre of mass [kg m^2] (core/model.py ``linearize``; 0: model (1)).
     """
-    A, B = linearize(l, p)
+    A, B = linearize(l, p, inertia)
     keep = [0, 1, 3]
     A3, B3 = A[np.ix_(keep, keep)], B[keep].reshape(3, 1)
     Ad, Bd, _, _, _ = cont2discrete((A3, B3, np.eye(3), np.zeros((3, 1))), dt, method='zoh')
@@ -262,17 +263,17 @@ def _drop_free_position(A, B, C, v) -> tuple:
 
 def build_loop(controller, observer: DisturbanceObserver, l: float,
                p: RobotParams = RobotParams(), dt: float = CONTROL_PERIOD,
-               radius_ratio: float = 1.0) -> StateSpace:
+               radius_ratio: float = 1.0, inertia: float = 0.0) -> StateSpace:
     """
     Return the return ratio L(z) = -K(z) P(z) z^-1 at height l [m] (discrete, sampling dt [s]).
 
     ``controller``: a Controller of core/controller_base.py (linearized by central
     differences); ``observer``: the DisturbanceObserver that feeds it xi_hat. Input: the actuator
     signal at the loop break [N]; output: minus the controller's command [N]. D = 0 (the tick of
-    delay makes it strictly proper). radius_ratio: as ``plant_matrices``'s.
+    delay makes it strictly proper). radius_ratio, inertia: the plant's, as ``plant_matrices``'s.
     """
     J = controller_jacobian(controller, l)
-    Ap, Bp, Cp = plant_matrices(l, p, dt, radius_ratio)
+    Ap, Bp, Cp = plant_matrices(l, p, dt, radius_ratio, inertia)
     Ak, Bk, Ck, Dk = controller_matrices(J, observer, l)
     n_p, n_k = Ap.shape[0], Ak.shape[0]
     A = np.zeros((n_p + n_k, n_p + n_k))
@@ -520,7 +521,7 @@ def delay_ticks(delay: float, dt: float = CONTROL_PERIOD) -> int:
 
 def certify(controller_name: str, gains_set: str, heights: Optional[Sequence[float]] = None,
             cfg: BalanceConfig = BalanceConfig(), extra_ticks: int = 0,
-            plant: Optional[RobotParams] = None) -> List[Margins]:
+            plant: Optional[RobotParams] = None, inertia: float = 0.0) -> List[Margins]:
     """
     Return the Margins of ``controller_name`` at ``gains_set`` for every height [m].
 
@@ -529,7 +530,8 @@ def certify(controller_name: str, gains_set: str, heights: Optional[Sequence[flo
     cfg: the configuration (robot, observer period, default gains); extra_ticks: ticks of
     actuator delay in the loop (``delay_ticks``); plant: the robot the loop is closed on when
     it is not the one cfg's controllers are built for (default: cfg's; the controllers' own
-    wheel radius then scales their force and odometry, ``plant_matrices``).
+    wheel radius then scales their force and odometry, ``plant_matrices``); inertia: the
+    plant pendulum's own inertia about its centre of mass [kg m^2] (0: model (1)).
     """
     if controller_name not in CONTROLLER_NAMES:
         raise ValueError('unknown controller %r (one of %s)'
@@ -537,21 +539,22 @@ def certify(controller_name: str, gains_set: str, heights: Optional[Sequence[flo
     if heights is None:
         heights = height_grid(0.01, cfg.model)
     return core_margins(build_core(gains_set, cfg), controller_name, heights, gains_set,
-                        extra_ticks, plant)
+                        extra_ticks, plant, inertia)
 
 
 def core_margins(core: BalanceCore, controller_name: str, heights: Sequence[float],
                  gains_set: str = '', extra_ticks: int = 0,
-                 plant: Optional[RobotParams] = None) -> List[Margins]:
+                 plant: Optional[RobotParams] = None, inertia: float = 0.0) -> List[Margins]:
     """
     Return the Margins of ``core``'s controller ``controller_name`` at every height [m].
 
     ``certify`` for a core built elsewhere (e.g. the tuning's candidates); gains_set: the
-    label the Margins carry; extra_ticks, plant: as ``certify``'s.
+    label the Margins carry; extra_ticks, plant, inertia: as ``certify``'s.
     """
     p = plant or core.p
     ratio = core.p.wheel_radius / p.wheel_radius
     return [loop_margins(delayed(build_loop(core.controllers[controller_name], core.observer,
-                                            float(l), p, core.dt, ratio), extra_ticks),
+                                            float(l), p, core.dt, ratio, inertia),
+                                 extra_ticks),
                          float(l), controller_name, gains_set)
             for l in heights]

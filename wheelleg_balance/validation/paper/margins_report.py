@@ -233,17 +233,18 @@ def _fitted(args, step: float) -> int:
     from . import margins_fitted
     try:
         cfg = margins_fitted.configuration(args.config)
-        extra = args.extra_delay or 0.0
+        extra, inertia = args.extra_delay or 0.0, 0.0
         if args.identify_report:
             extra = margins_fitted.report_delay(args.identify_report)
+            inertia = margins_fitted.report_inertia(args.identify_report)
     except (ValueError, KeyError, OSError) as e:
         print('margins_report: %s' % e, file=sys.stderr)
         return 1
     if not 0.0 <= extra < 1.0:
         print('margins_report: extra delay %g s outside [0, 1) s' % extra, file=sys.stderr)
         return 1
-    results = margins_fitted.report(cfg, extra, args.docs or '.', step)
-    fitted = [ms for (c, case), ms in results.items() if case == 'fitted']
+    results = margins_fitted.report(cfg, extra, args.docs or '.', step, max(inertia, 0.0))
+    fitted = [ms for (c, case), ms in results.items() if case.startswith('fitted')]
     return 0 if all(not m.shortfalls() for ms in fitted for m in ms) else 1
 
 
