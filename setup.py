@@ -67,6 +67,7 @@ setup(
             'margins_report = wheelleg_balance.validation.paper.margins_report:main',
             'tuning = wheelleg_balance.validation.paper.tuning:main',
             'bringup = wheelleg_balance.bringup.cli:main',
+            'identify = wheelleg_balance.identification.cli:main',
         ],
     },
 )

@@ -119,50 +119,15 @@ def test_the_fitted_balance_node_file(full_fit):
     assert loaded['d_hat0'] == pytest.approx(params['d_hat0'])
 
 
-def _write_mcap(path, rec):
-    """Write a Record as balance_node's recording holds it (validation/recording.py's schemas)."""
-    mcap_writer = pytest.importorskip('mcap_ros2.writer')
-    from sensor_msgs.msg import Imu, JointState
-    from std_msgs.msg import Float64MultiArray
-    from wheelleg_balance.validation.recording import message_definition
-    imu, js, st = rec['imu'], rec[JOINTS], rec[STATE]
-    names = [c[:-len('.position')] for c in js.columns if c.endswith('.position')]
-    with open(path, 'wb') as f:
-        writer = mcap_writer.Writer(f)
-        schemas = {cls: writer.register_msgdef('%s/msg/%s' % (cls.__module__.split('.')[0],
-                                                              cls.__name__),
-                                               message_definition(cls))
-                   for cls in (Imu, JointState, Float64MultiArray)}
-        for k, t in enumerate(imu.t):
-            ns = int(round((100.0 + t) * 1e9))
-            stamp = {'sec': int(100.0 + t), 'nanosec': ns % 1000000000}
-            c = {n: float(imu[n][k]) for n in imu.columns}
-            writer.write_message('/imu', schemas[Imu], {
-                'header': {'stamp': stamp, 'frame_id': 'imu_link'},
-                'orientation': {'x': c['qx'], 'y': c['qy'], 'z': c['qz'], 'w': c['qw']},
-                'angular_velocity': {'x': c['wx'], 'y': c['wy'], 'z': c['wz']},
-                'linear_acceleration': {'x': c['ax'], 'y': c['ay'], 'z': c['az']}},
-                log_time=ns, publish_time=ns)
-            writer.write_message('/joint_states', schemas[JointState], {
-                'header': {'stamp': stamp, 'frame_id': ''}, 'name': names,
-                'position': [float(js[n + '.position'][k]) for n in names],
-                'velocity': [float(js[n + '.velocity'][k]) for n in names],
-                'effort': [float(js[n + '.effort'][k]) for n in names]},
-                log_time=ns, publish_time=ns)
-            writer.write_message('/balance_node/state', schemas[Float64MultiArray], {
-                'layout': {'dim': [], 'data_offset': 0},
-                'data': [float(st[n][k]) for n in st.columns]}, log_time=ns, publish_time=ns)
-        writer.finish()
-
-
 def test_a_recording_in_mcap_fits_as_the_in_process_record(tmp_path):
     pytest.importorskip('mcap.reader')
+    pytest.importorskip('mcap_ros2.writer')
     pytest.importorskip('sensor_msgs.msg')
-    from wheelleg_balance.identification.records import read_mcap
+    from wheelleg_balance.identification.records import read_mcap, write_mcap
     body = from_flat(RobotBodyConfig, VARIANT)
     rec = excite.play_stand(body, duration=2.0)
     path = tmp_path / 'stand.mcap'
-    _write_mcap(path, rec)
+    write_mcap(path, rec)
     read = read_mcap(path, 'stand')
     assert np.allclose(read['imu'].t - read['imu'].t[0], rec['imu'].t, atol=1e-9)
     assert np.array_equal(read[JOINTS]['left_wheel_joint.velocity'],

@@ -187,7 +187,8 @@ def controller_jacobian(controller, l: float, step: float = JACOBIAN_STEP) -> np
     return J
 
 
-def plant_matrices(l: float, p: RobotParams, dt: float = CONTROL_PERIOD) -> tuple:
+def plant_matrices(l: float, p: RobotParams, dt: float = CONTROL_PERIOD,
+                   radius_ratio: float = 1.0, inertia: float = 0.0) -> tuple:
     """
     Return (Ap 5x5, Bp (5,), Cp 4x5): the plant side of the loop at height l [m].
 
@@ -195,21 +196,25 @@ def plant_matrices(l: float, p: RobotParams, dt: float = CONTROL_PERIOD) -> tupl
     zero-order hold over dt [s]; u_{k-1} [N], the command of the last tick, is what acts during
     this one (the tick of delay); x_odo [m] is the odometry's x_k = x_{k-1} + dt x_dot_{k-1}.
     Input: the command u_k [N]. Outputs, what the tick measures: [theta~, theta_dot, x, x_dot].
+    radius_ratio: the controller's wheel radius over the plant's, when the controller was built
+    for another robot: its force u becomes radius_ratio u on p (tau = r_c u / 2, F = 2 tau / r_p)
+    and its odometry reads radius_ratio times the true x and x_dot. inertia: the pendulum's own
+    inertia about its centre of mass [kg m^2] (core/model.py ``linearize``; 0: model (1)).
     """
-    A, B = linearize(l, p)
+    A, B = linearize(l, p, inertia)
     keep = [0, 1, 3]
     A3, B3 = A[np.ix_(keep, keep)], B[keep].reshape(3, 1)
     Ad, Bd, _, _, _ = cont2discrete((A3, B3, np.eye(3), np.zeros((3, 1))), dt, method='zoh')
     Ap = np.zeros((_PLANT_STATES, _PLANT_STATES))
     Ap[:3, :3] = Ad
-    Ap[:3, 3] = Bd[:, 0]
-    Ap[_XO, 2] = dt
+    Ap[:3, 3] = radius_ratio * Bd[:, 0]
+    Ap[_XO, 2] = radius_ratio * dt   # the odometry integrates the x_dot it reads
     Ap[_XO, _XO] = 1.0
     Bp = np.zeros(_PLANT_STATES)
     Bp[3] = 1.0
     Cp = np.zeros((4, _PLANT_STATES))
-    Cp[0, 0] = Cp[1, 1] = Cp[3, 2] = 1.0
-    Cp[2, _XO] = 1.0
+    Cp[0, 0] = Cp[1, 1] = Cp[2, _XO] = 1.0
+    Cp[3, 2] = radius_ratio
     return Ap, Bp, Cp
 
 
@@ -257,17 +262,18 @@ def _drop_free_position(A, B, C, v) -> tuple:
 
 
 def build_loop(controller, observer: DisturbanceObserver, l: float,
-               p: RobotParams = RobotParams(), dt: float = CONTROL_PERIOD) -> StateSpace:
+               p: RobotParams = RobotParams(), dt: float = CONTROL_PERIOD,
+               radius_ratio: float = 1.0, inertia: float = 0.0) -> StateSpace:
     """
     Return the return ratio L(z) = -K(z) P(z) z^-1 at height l [m] (discrete, sampling dt [s]).
 
     ``controller``: a Controller of core/controller_base.py (linearized by central
     differences); ``observer``: the DisturbanceObserver that feeds it xi_hat. Input: the actuator
     signal at the loop break [N]; output: minus the controller's command [N]. D = 0 (the tick of
-    delay makes it strictly proper).
+    delay makes it strictly proper). radius_ratio, inertia: the plant's, as ``plant_matrices``'s.
     """
     J = controller_jacobian(controller, l)
-    Ap, Bp, Cp = plant_matrices(l, p, dt)
+    Ap, Bp, Cp = plant_matrices(l, p, dt, radius_ratio, inertia)
     Ak, Bk, Ck, Dk = controller_matrices(J, observer, l)
     n_p, n_k = Ap.shape[0], Ak.shape[0]
     A = np.zeros((n_p + n_k, n_p + n_k))
@@ -486,31 +492,69 @@ def height_grid(step: float = 0.01, p: RobotParams = RobotParams()) -> np.ndarra
     return np.linspace(p.height_min, p.height_max, n)
 
 
+def delayed(loop: StateSpace, ticks: int) -> StateSpace:
+    """
+    Return ``loop`` with ``ticks`` more ticks of delay at its input: L(z) z^-ticks.
+
+    A measured actuator latency (identification's motor delay) as part of the loop, so that the
+    margins are what is left beyond it. ``loop`` must be strictly proper (D = 0).
+    """
+    if ticks <= 0:
+        return loop
+    A, B, C = (np.asarray(m, dtype=float) for m in (loop.A, loop.B, loop.C))
+    n, m = A.shape[0], int(ticks)
+    Ad = np.zeros((n + m, n + m))
+    Ad[:n, :n] = A
+    Ad[:n, n + m - 1:] = B.reshape(n, 1)   # the last of the register drives the loop
+    for i in range(1, m):
+        Ad[n + i, n + i - 1] = 1.0
+    Bd = np.zeros((n + m, 1))
+    Bd[n, 0] = 1.0
+    Cd = np.append(C.reshape(n), np.zeros(m)).reshape(1, n + m)
+    return StateSpace(Ad, Bd, Cd, np.zeros((1, 1)), dt=loop.dt)
+
+
+def delay_ticks(delay: float, dt: float = CONTROL_PERIOD) -> int:
+    """Return an actuator delay [s] as whole ticks of dt [s], rounded up (the safe side)."""
+    return max(0, math.ceil(delay / dt - 1e-6))
+
+
 def certify(controller_name: str, gains_set: str, heights: Optional[Sequence[float]] = None,
-            cfg: BalanceConfig = BalanceConfig()) -> List[Margins]:
+            cfg: BalanceConfig = BalanceConfig(), extra_ticks: int = 0,
+            plant: Optional[RobotParams] = None, inertia: float = 0.0) -> List[Margins]:
     """
     Return the Margins of ``controller_name`` at ``gains_set`` for every height [m].
 
     controller_name: one of core/pipeline.py CONTROLLER_NAMES (ida_pbc, output_regulation,
     lqr); gains_set: one of GAIN_SETS; heights: default every 1 cm over height_min..height_max;
-    cfg: the configuration (robot, observer period, default gains).
+    cfg: the configuration (robot, observer period, default gains); extra_ticks: ticks of
+    actuator delay in the loop (``delay_ticks``); plant: the robot the loop is closed on when
+    it is not the one cfg's controllers are built for (default: cfg's; the controllers' own
+    wheel radius then scales their force and odometry, ``plant_matrices``); inertia: the
+    plant pendulum's own inertia about its centre of mass [kg m^2] (0: model (1)).
     """
     if controller_name not in CONTROLLER_NAMES:
         raise ValueError('unknown controller %r (one of %s)'
                          % (controller_name, ', '.join(CONTROLLER_NAMES)))
     if heights is None:
         heights = height_grid(0.01, cfg.model)
-    return core_margins(build_core(gains_set, cfg), controller_name, heights, gains_set)
+    return core_margins(build_core(gains_set, cfg), controller_name, heights, gains_set,
+                        extra_ticks, plant, inertia)
 
 
 def core_margins(core: BalanceCore, controller_name: str, heights: Sequence[float],
-                 gains_set: str = '') -> List[Margins]:
+                 gains_set: str = '', extra_ticks: int = 0,
+                 plant: Optional[RobotParams] = None, inertia: float = 0.0) -> List[Margins]:
     """
     Return the Margins of ``core``'s controller ``controller_name`` at every height [m].
 
     ``certify`` for a core built elsewhere (e.g. the tuning's candidates); gains_set: the
-    label the Margins carry.
+    label the Margins carry; extra_ticks, plant, inertia: as ``certify``'s.
     """
-    return [loop_margins(build_loop(core.controllers[controller_name], core.observer, float(l),
-                                    core.p, core.dt), float(l), controller_name, gains_set)
+    p = plant or core.p
+    ratio = core.p.wheel_radius / p.wheel_radius
+    return [loop_margins(delayed(build_loop(core.controllers[controller_name], core.observer,
+                                            float(l), p, core.dt, ratio, inertia),
+                                 extra_ticks),
+                         float(l), controller_name, gains_set)
             for l in heights]

@@ -86,22 +86,37 @@ def ipc_dynamics(state, u: float, l: float, p: RobotParams) -> np.ndarray:
     return np.array([theta_dot, theta_ddot, x_dot, x_ddot])
 
 
-def linearize(l: float, p: RobotParams) -> tuple:
+def linearize(l: float, p: RobotParams, inertia: float = 0.0) -> tuple:
     """
     Linearization (2) of model (1) about theta = theta_dot = x_dot = 0, u = 0.
 
     Returns (A 4x4, B shape (4,)) with
     A = [[0, 1, 0, 0], [(M+m) g / (M l), 0, 0, 0], [0, 0, 0, 1], [-m g / M, 0, 0, 0]],
     B = [0, -1 / (M l), 0, 1 / M].
+    inertia: the pendulum's own inertia about its centre of mass I [kg m^2], which model (1)'s
+    point mass has not (0: model (1) itself); with J = m l^2 + I and D = (M+m) J - m^2 l^2,
+    theta_ddot = m l ((M+m) g theta - u) / D and x_ddot = (J u - m^2 g l^2 theta) / D (the
+    linearized (1) with J in place of m l^2; I = 0 gives the matrices above). For checking
+    the controllers against an identified robot (docs/identification.md), not for the design.
     """
     m, M, g = p.body_mass, p.wheel_mass, p.gravity
+    if inertia == 0.0:   # model (1) as the design uses it, to the last bit
+        A = np.array([
+            [0.0, 1.0, 0.0, 0.0],
+            [(M + m) * g / (M * l), 0.0, 0.0, 0.0],
+            [0.0, 0.0, 0.0, 1.0],
+            [-m * g / M, 0.0, 0.0, 0.0],
+        ])
+        return A, np.array([0.0, -1.0 / (M * l), 0.0, 1.0 / M])
+    J = m * l * l + inertia
+    D = (M + m) * J - (m * l) ** 2
     A = np.array([
         [0.0, 1.0, 0.0, 0.0],
-        [(M + m) * g / (M * l), 0.0, 0.0, 0.0],
+        [m * l * (M + m) * g / D, 0.0, 0.0, 0.0],
         [0.0, 0.0, 0.0, 1.0],
-        [-m * g / M, 0.0, 0.0, 0.0],
+        [-(m * l) ** 2 * g / D, 0.0, 0.0, 0.0],
     ])
-    B = np.array([0.0, -1.0 / (M * l), 0.0, 1.0 / M])
+    B = np.array([0.0, -m * l / D, 0.0, J / D])
     return A, B
 
 

@@ -32,7 +32,7 @@ are model error, not noise. ``identify`` runs the three and returns the report
 """
 from dataclasses import dataclass
 import math
-from typing import Dict, List, Sequence, Tuple
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 from scipy.integrate import cumulative_trapezoid
@@ -54,6 +54,15 @@ SG_WINDOW, SG_ORDER = 21, 3
 COAST = 0.1
 #: Balance samples with the height changing faster than this are left out [m/s].
 STEADY_HEIGHT_RATE = 0.005
+
+
+@dataclass(frozen=True)
+class Series:
+    """A phase's measured signal against the fit's prediction: curves (label, t, meas, pred)."""
+
+    quantity: str
+    unit: str
+    curves: List[Tuple[str, np.ndarray, np.ndarray, np.ndarray]]
 
 
 @dataclass(frozen=True)
@@ -176,7 +185,10 @@ def fit_stand(rec: Record) -> Dict[str, Estimate]:
                            x_scale=[guess, 0.01, 0.001])
     half = _intervals(result, 3)
     inertia, damping, delay = result.x
-    return {'robot.wheel_inertia': Estimate(inertia, half[0], 'kg m^2'),
+    curves = [('wheel %d' % k, t, w, simulate_wheel(t, w[0], u, inertia, damping, delay))
+              for k, (w, u) in enumerate(zip(speeds, inputs))]
+    return {'_series': Series('wheel speed', 'rad/s', curves),
+            'robot.wheel_inertia': Estimate(inertia, half[0], 'kg m^2'),
             'robot.wheel_damping': Estimate(damping, half[1], 'N m s/rad'),
             'robot.motor_delay': Estimate(delay, half[2], 's'),
             '_residual_rms': Estimate(float(np.sqrt(np.mean(result.fun ** 2))), 0.0, 'rad/s')}
@@ -227,7 +239,11 @@ def fit_tail(rec: Record, stand: Dict[str, Estimate]) -> Dict[str, Estimate]:
     i_half = stand['robot.wheel_inertia'].interval
     m_half = math.sqrt((half_j[0] / r ** 2) ** 2 + (2.0 * i_half / r ** 2) ** 2
                        + (2.0 * m_tot / r * half_r[0]) ** 2)
-    return {'robot.wheel_radius': Estimate(r, half_r[0], 'm'),
+    # Predicted: the rolling equation's left side from the fitted inertia, against the drive.
+    measured = (drive - friction)[coast]
+    curves = [('rolling', t[coast], measured, measured - res_j)]
+    return {'_series': Series('drive less bearing friction, integrated', 'N m s', curves),
+            'robot.wheel_radius': Estimate(r, half_r[0], 'm'),
             'rolling_mass': Estimate(m_tot, m_half, 'kg'),
             '_residual_rms': Estimate(float(np.sqrt(np.mean(res_j ** 2))), 0.0, 'N m s')}
 
@@ -344,7 +360,10 @@ def fit_balance(rec: Record, stand: Dict[str, Estimate], tail: Dict[str, Estimat
     half = _intervals(result, 6)
     m_b, c_x, c_z, i_b, d, shift = result.x
     lumped = _lumped(pend, result.x, l_state[keep])
-    return {'robot.body_mass': Estimate(m_b, half[0], 'kg'),
+    predicted = tau - result.fun * scale   # what the pitch equation asks of the wheels
+    return {'_series': Series('net wheel torque on the pendulum', 'N m',
+                              [('pitch equation', t[keep], tau, predicted)]),
+            'robot.body_mass': Estimate(m_b, half[0], 'kg'),
             'robot.body_com': Estimate([c_x, c_z], [half[1], half[2]], 'm'),
             'robot.body_inertia': Estimate(i_b, half[3], 'kg m^2'),
             'imu_pitch_offset': Estimate(d, half[4], 'rad'),
@@ -378,14 +397,16 @@ def _lumped(pend: Pendulum, p, l_state: np.ndarray) -> List[Dict[str, float]]:
 
 
 def identify(records: Dict[str, Record], leg: FiveBarLeg,
-             known: KnownParts = KnownParts()) -> Dict:
+             known: KnownParts = KnownParts(), series: Optional[Dict[str, Series]] = None
+             ) -> Dict:
     """
     Fit the phases recorded, in turn; return the report (identify_report.json's shape).
 
     ``stand`` is needed, ``tail`` needs it, ``balance`` both. ``quantities``: {sim_node
     parameter name: {value, interval, unit}}, with the balance phase the wheel mass (the rolling
     mass less the pendulum's); ``lumped``: model (1)'s pendulum at each height; ``residuals``:
-    each fit's RMS residual; ``phases``: the phases fitted.
+    each fit's RMS residual; ``phases``: the phases fitted. series: filled with each phase's
+    measured signal against the fit's prediction ({phase: Series}, for plots).
     """
     parts = {'stand': fit_stand(records['stand'])}
     if 'tail' in records:
@@ -393,6 +414,8 @@ def identify(records: Dict[str, Record], leg: FiveBarLeg,
     if 'balance' in records and 'tail' in parts:
         parts['balance'] = fit_balance(records['balance'], parts['stand'], parts['tail'], leg,
                                        known)
+    if series is not None:
+        series.update({k: v['_series'] for k, v in parts.items()})
     quantities = {}
     for part in parts.values():
         quantities.update({k: v for k, v in part.items() if not k.startswith('_')})

@@ -14,6 +14,7 @@ A ``Record`` is one phase (``stand``, ``tail`` or ``balance``): per topic a ``Se
   torques commanded, forward positive [N m]), ``l`` [m] and ``mode``.
 
 ``read_mcap`` reads such a file (the ``mcap`` and ``mcap-ros2-support`` packages, optional)
+and ``write_mcap`` writes one (the ``identify --sim`` phases, so ``--recording`` refits them),
 into one Record, every topic on the recording's log time (the state has no stamp; one clock
 for all, so the fitted delay includes what the transport adds); ``excite.py`` builds the same
 layout from the simulator in-process.
@@ -130,3 +131,50 @@ def read_mcap(path, phase: str, start: float = -np.inf, end: float = np.inf,
     if joints is None:
         raise KeyError('%s has no joint_states' % path)
     return Record(phase, {IMU: imu.series(), JOINTS: joints.series(), STATE: state.series()})
+
+
+def write_mcap(path, rec: Record, t0: float = 100.0) -> None:
+    """
+    Write a Record as balance_node's recording holds it (validation/recording.py's schemas).
+
+    Each sample on the log time t0 + its time [s]; the imu and joint states stamped with it.
+    Needs the ``mcap-ros2-support`` package and the ROS message packages (MissingDependency).
+    """
+    from ..optional import require
+    writer_mod = require('mcap_ros2.writer', 'writing MCAP recordings')
+    from sensor_msgs.msg import Imu, JointState
+    from std_msgs.msg import Float64MultiArray
+    from ..validation.recording import message_definition
+    imu, js, st = rec[IMU], rec[JOINTS], rec[STATE]
+    names = [c[:-len('.position')] for c in js.columns if c.endswith('.position')]
+    with open(path, 'wb') as f:
+        writer = writer_mod.Writer(f)
+        schemas = {cls: writer.register_msgdef('%s/msg/%s' % (cls.__module__.split('.')[0],
+                                                              cls.__name__),
+                                               message_definition(cls))
+                   for cls in (Imu, JointState, Float64MultiArray)}
+        for k, t in enumerate(imu.t):
+            ns = int(round((t0 + t) * 1e9))
+            stamp = {'sec': ns // 1000000000, 'nanosec': ns % 1000000000}
+            c = {n: float(imu[n][k]) for n in imu.columns}
+            writer.write_message('/imu', schemas[Imu], {
+                'header': {'stamp': stamp, 'frame_id': 'imu_link'},
+                'orientation': {'x': c['qx'], 'y': c['qy'], 'z': c['qz'], 'w': c['qw']},
+                'angular_velocity': {'x': c['wx'], 'y': c['wy'], 'z': c['wz']},
+                'linear_acceleration': {'x': c['ax'], 'y': c['ay'], 'z': c['az']}},
+                log_time=ns, publish_time=ns)
+        for k, t in enumerate(js.t):
+            ns = int(round((t0 + t) * 1e9))
+            stamp = {'sec': ns // 1000000000, 'nanosec': ns % 1000000000}
+            writer.write_message('/joint_states', schemas[JointState], {
+                'header': {'stamp': stamp, 'frame_id': ''}, 'name': names,
+                'position': [float(js[n + '.position'][k]) for n in names],
+                'velocity': [float(js[n + '.velocity'][k]) for n in names],
+                'effort': [float(js[n + '.effort'][k]) for n in names]},
+                log_time=ns, publish_time=ns)
+        for k, t in enumerate(st.t):
+            ns = int(round((t0 + t) * 1e9))
+            writer.write_message('/balance_node/state', schemas[Float64MultiArray], {
+                'layout': {'dim': [], 'data_offset': 0},
+                'data': [float(st[n][k]) for n in st.columns]}, log_time=ns, publish_time=ns)
+        writer.finish()

@@ -13,6 +13,10 @@ margins_report: the stability margins of every controller over the height range,
 
 It prints one line per controller and gain set. Exit code 0 when every case meets the required
 margins at every height, 1 otherwise (the docs are written either way), 2 without matplotlib.
+
+``margins_report --config FILE [--config FILE ...] [--identify-report FILE | --extra-delay S]
+[--docs DIR]`` certifies an identified robot instead (margins_fitted.py: its configuration and
+its motor delay against the default configuration; DIR defaults to the current folder then).
 """
 import argparse
 import datetime
@@ -224,23 +228,60 @@ def write_doc(path: str, block: str) -> None:
         f.write(head + BEGIN + '\n' + block + END + tail)
 
 
+def _fitted(args, step: float) -> int:
+    """``--config``: the identified robot against the default configuration (exit code)."""
+    from . import margins_fitted
+    try:
+        cfg = margins_fitted.configuration(args.config)
+        extra, inertia = args.extra_delay or 0.0, 0.0
+        if args.identify_report:
+            extra = margins_fitted.report_delay(args.identify_report)
+            inertia = margins_fitted.report_inertia(args.identify_report)
+    except (ValueError, KeyError, OSError) as e:
+        print('margins_report: %s' % e, file=sys.stderr)
+        return 1
+    if not 0.0 <= extra < 1.0:
+        print('margins_report: extra delay %g s outside [0, 1) s' % extra, file=sys.stderr)
+        return 1
+    results = margins_fitted.report(cfg, extra, args.docs or '.', step, max(inertia, 0.0))
+    fitted = [ms for (c, case), ms in results.items() if case.startswith('fitted')]
+    return 0 if all(not m.shortfalls() for ms in fitted for m in ms) else 1
+
+
 def main(argv=None) -> int:
     """Entry point of the ``margins_report`` executable."""
     parser = argparse.ArgumentParser(
         prog='margins_report',
         description="Certify every controller's stability margins over the height range.")
-    parser.add_argument('--docs', default='docs',
+    parser.add_argument('--docs', default=None,
                         help='docs folder: writes margins.md and img/margins_*.png (default: '
                         './docs, i.e. run from the repository root)')
-    parser.add_argument('--step', type=float, default=0.005,
-                        help='height step [m] (default 0.005)')
+    parser.add_argument('--step', type=float, default=None,
+                        help='height step [m] (default 0.005; 0.01 with --config)')
+    parser.add_argument('--config', action='append', default=[], metavar='FILE.yaml',
+                        help="balance_node parameter files, in order (the robot's, then "
+                        "identify's fitted.yaml): certify that robot against the default "
+                        'configuration (writes DIR/margins_fitted.md; DIR default: .)')
+    delay = parser.add_mutually_exclusive_group()
+    delay.add_argument('--identify-report', metavar='FILE.json',
+                       help="with --config: identify's report; its robot.motor_delay is "
+                       'extra loop delay')
+    delay.add_argument('--extra-delay', type=float, default=None, metavar='S',
+                       help='with --config: extra loop delay [s] (the motor delay)')
     args = parser.parse_args(argv)
-    if not 0.0 < args.step <= 0.33:
+    step = args.step if args.step is not None else (0.01 if args.config else 0.005)
+    if not 0.0 < step <= 0.33:
         parser.error('--step must be in (0, 0.33] m')
+    if not args.config and (args.identify_report or args.extra_delay is not None):
+        parser.error('--identify-report and --extra-delay go with --config')
     absent = missing(('matplotlib',), 'margins_report (its figures)')
     if absent:
         print('\n'.join(absent), file=sys.stderr)
         return 2
+    if args.config:
+        return _fitted(args, step)
+    args.step = step
+    args.docs = args.docs or 'docs'
     heights = height_grid(args.step)
     results = run(heights)
     img = os.path.join(args.docs, 'img')

@@ -41,13 +41,15 @@ class Play(NamedTuple):
     imu_offset: the IMU's pitch offset d [rad]; duration: seconds judged after balancing began;
     params: balance_node parameters of the play, set from power-up (the candidate's come on
     top); switch_at: from this time [s] on, ``controller: output_regulation`` (main_job's
-    standing: IDA-PBC rises, output regulation holds from 3 s).
+    standing: IDA-PBC rises, output regulation holds from 3 s); body: the MuJoCo robot's
+    ``robot.*`` (sim/config.RobotBodyConfig; None: the default robot).
     """
 
     imu_offset: float
     duration: float
     params: Tuple[Tuple[str, Any], ...] = ()
     switch_at: Optional[float] = None
+    body: Optional[Any] = None
 
 
 class Trace(NamedTuple):
@@ -63,11 +65,11 @@ class Trace(NamedTuple):
     period: float          # control period [s]
 
 
-_SNAPSHOTS: Dict[Tuple, Lockstep] = {}
+_SNAPSHOTS: Dict[str, Lockstep] = {}
 
 
 def _armed(play: Play) -> Lockstep:
-    ls = Lockstep(dict(play.params), imu_offset=play.imu_offset)
+    ls = Lockstep(dict(play.params), imu_offset=play.imu_offset, body=play.body)
     ls.run(ARM_AT)
     ls.arm(True)
     return ls
@@ -75,7 +77,7 @@ def _armed(play: Play) -> Lockstep:
 
 def snapshot(play: Play) -> Lockstep:
     """Return a copy of the play's robot on the tick before balancing begins (built once)."""
-    key = (play.imu_offset, play.params)
+    key = repr((play.imu_offset, play.params, play.body))   # lists in params: not hashable
     if key not in _SNAPSHOTS:
         probe, ticks = _armed(play), 0
         limit = int(round(HOMING_LIMIT / probe.period))

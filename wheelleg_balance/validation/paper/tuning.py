@@ -102,7 +102,7 @@ import os
 import platform
 import sys
 import time
-from typing import Dict, List, NamedTuple, Optional, Sequence, Tuple
+from typing import Any, Dict, List, NamedTuple, Optional, Sequence, Tuple
 
 import numpy as np
 from scipy.optimize import brentq, differential_evolution, LinearConstraint
@@ -337,9 +337,26 @@ def shaped_reference(commands: Sequence[Tuple[float, float]], duration: float,
     return tuple(points)
 
 
-def scenarios(quick: bool = False, plant: str = 'mujoco') -> Tuple[Run, ...]:
+class Robot(NamedTuple):
+    """
+    The robot tuned for: model (1)'s numbers, its balance_node parameters, its MuJoCo body.
+
+    model: RobotParams of the configuration (the model-(1) plant and every core); params: the
+    balance_node parameters of its files (e.g. identify's fitted.yaml), set in the MuJoCo plays
+    from power-up; body: the MuJoCo robot (sim_node ``robot.*``; None: the default robot).
+    """
+
+    model: RobotParams = RobotParams()
+    params: Tuple[Tuple[str, Any], ...] = ()
+    body: Optional[Any] = None
+
+
+def scenarios(quick: bool = False, plant: str = 'mujoco',
+              robot: Robot = Robot()) -> Tuple[Run, ...]:
     """
     Return the scenario set (module docstring); ``quick``: one start-up, short runs (tests).
+
+    robot: what the runs simulate (default: the default robot).
 
     plant 'mujoco': the start-ups and the standing hand-over in MuJoCo (mujoco_runs.py), the
     velocity step and the push on model (1) (the hold does them; the variables barely reach
@@ -354,33 +371,33 @@ def scenarios(quick: bool = False, plant: str = 'mujoco') -> Tuple[Run, ...]:
     if plant == 'mujoco':
         for _, d in grid:
             runs.append(Run('mujoco/startup/d%+.1f' % (d / DEG), 'startup', None,
-                            play=Play(d, duration)))
+                            play=Play(d, duration, robot.params, body=robot.body)))
         if not quick:
             runs.append(Run('mujoco/standing', 'standing', None, play=Play(
                 2.2 * DEG, STANDING_FROM_S + STANDING_WINDOW_S,
-                (('controller', 'ida_pbc'), ('d_hat0', STANDING_D_HAT0)),
-                STANDING_SWITCH_S)))
+                robot.params + (('controller', 'ida_pbc'), ('d_hat0', STANDING_D_HAT0)),
+                STANDING_SWITCH_S, robot.body)))
     else:
         for l, d in grid:
             runs.append(Run('startup/l%.2f/d%+.1f' % (l, d / DEG), 'startup', Scenario(
                 name='startup', controller='auto', duration=duration, theta0=TAIL_ANGLE,
-                imu_offset=d, height=l)))
+                imu_offset=d, height=l, params=robot.model)))
         for l, d, seed in (() if quick else NOISY):
             runs.append(Run('startup_noise/l%.2f/d%+.1f/seed%d' % (l, d / DEG, seed),
                             'startup', Scenario(
                                 name='startup_noise', controller='auto', duration=duration,
                                 theta0=TAIL_ANGLE, imu_offset=d, height=l,
-                                noise_std=SENSOR_NOISE, seed=seed)))
+                                noise_std=SENSOR_NOISE, seed=seed, params=robot.model)))
     up, down, step_end = (0.5, 1.5, 2.5) if quick else (STEP_UP_S, STEP_DOWN_S, STEP_DURATION)
     runs.append(Run('velocity_step', 'velocity_step', Scenario(
         name='velocity_step', controller='auto', duration=step_end, theta0=0.0,
-        height=UPRIGHT_HEIGHT,
+        height=UPRIGHT_HEIGHT, params=robot.model,
         x_dot_ref=shaped_reference(((up, STEP_SPEED), (down, 0.0)), step_end)),
         step=(up, down)))
     kicks = ((0.6, 0.1, 60.0),) if quick else KICKS
     runs.append(Run('push', 'push', Scenario(
         name='push', controller='auto', duration=1.6 if quick else PUSH_DURATION,
-        theta0=0.0, height=UPRIGHT_HEIGHT), kicks))
+        theta0=0.0, height=UPRIGHT_HEIGHT, params=robot.model), kicks))
     return tuple(runs)
 
 
@@ -389,16 +406,18 @@ def scenarios(quick: bool = False, plant: str = 'mujoco') -> Tuple[Run, ...]:
 _BASE_CORE: Dict[str, BalanceCore] = {}
 
 
-def make_core(c: Candidate) -> BalanceCore:
+def make_core(c: Candidate, p: RobotParams = RobotParams()) -> BalanceCore:
     """
     Return a BalanceCore in ``controller: auto`` with the candidate's gains and thresholds.
 
-    Building one solves the LQR schedule (seconds); it is built once and deep-copied.
+    p: the robot's model (1). Building one solves the LQR schedule (seconds); it is built once
+    per robot and deep-copied.
     """
-    if 'auto' not in _BASE_CORE:
-        _BASE_CORE['auto'] = BalanceCore(RobotParams(), CoreConfig(
+    key = repr(p)
+    if key not in _BASE_CORE:
+        _BASE_CORE[key] = BalanceCore(p, CoreConfig(
             controller='auto', max_wheel_torque=TORQUE_LIMIT))
-    core = copy.deepcopy(_BASE_CORE['auto'])
+    core = copy.deepcopy(_BASE_CORE[key])
     core.set_ida_pbc_gains(c.gains)
     core.set_auto_rules(c.rules)
     return core
@@ -570,7 +589,7 @@ def run_one(run: Run, c: Candidate) -> dict:
     """Simulate one scenario with a candidate and return its metrics."""
     if run.play is not None:
         return run_play_metrics(run, c)
-    core = make_core(c)
+    core = make_core(c, run.scenario.params)
     if run.kicks:
         r = simulate_kicked(run.scenario, core, run.kicks)
     else:
@@ -633,16 +652,17 @@ def _fall_terms(group: str) -> float:
     return sum(_f(R_CAP) + MISS_WEIGHTS.get(k, 0.0) * (R_CAP - 1.0) for k in TARGETS[group])
 
 
-def certification(c: Candidate, heights: Sequence[float] = CERT_HEIGHTS) -> dict:
+def certification(c: Candidate, heights: Sequence[float] = CERT_HEIGHTS,
+                  p: RobotParams = RobotParams()) -> dict:
     """
     Return IDA-PBC's worst margins at the candidate's gains over ``heights`` (core/margins.py).
 
     The loop of issue 12 item 3 (2 ms, one tick of delay, broken at the wheel torque command)
     at each height; ``certified``: no height falls short (``Margins.shortfalls``, the rule the
     CI test applies: stable, both gain margins at least REQUIRED_GAIN_MARGIN_DB, the delay
-    margin at least REQUIRED_DELAY_MARGIN_S and confirmed).
+    margin at least REQUIRED_DELAY_MARGIN_S and confirmed). p: the robot's model (1).
     """
-    found = core_margins(make_core(c), 'ida_pbc', heights, 'candidate')
+    found = core_margins(make_core(c, p), 'ida_pbc', heights, 'candidate')
     return {'heights_m': [float(l) for l in heights],
             'stable': all(m.stable for m in found),
             'gain_margin_up_db': min(m.gain_margin_up_db for m in found),
@@ -659,8 +679,9 @@ def total_cost(metrics: Dict[str, dict], margins: dict, runs: Sequence[Run]) -> 
 class Objective:
     """The cost of a search vector over a fixed run set; keeps every evaluation's figures."""
 
-    def __init__(self, runs: Sequence[Run]):
+    def __init__(self, runs: Sequence[Run], p: RobotParams = RobotParams()):
         self.runs = tuple(runs)
+        self.p = p
         self.seen: Dict[Tuple[float, ...], Tuple[float, Dict[str, dict], dict]] = {}
 
     def evaluate(self, z) -> Tuple[float, Dict[str, dict], dict]:
@@ -668,7 +689,7 @@ class Objective:
         key = tuple(float(v) for v in z)
         if key not in self.seen:
             c = decode(key)
-            metrics, margins = evaluate(c, self.runs), certification(c)
+            metrics, margins = evaluate(c, self.runs), certification(c, p=self.p)
             self.seen[key] = (total_cost(metrics, margins, self.runs), metrics, margins)
         return self.seen[key]
 
@@ -787,19 +808,20 @@ def _candidate_lines(c: Candidate) -> List[str]:
 # ------------------------------------------------------------------------------------ main
 
 def tune(maxiter: int, popsize: int, seed: int, quick: bool = False, plant: str = 'mujoco',
-         workers: int = 1) -> dict:
+         workers: int = 1, robot: Robot = Robot()) -> dict:
     """
     Run the search and return the report (a JSON-safe dict).
 
     differential_evolution over ``VARIABLES`` with the hysteresis constraint, ``x0`` = START,
     Latin hypercube start population of popsize * len(VARIABLES) (at least 5) members,
     ``maxiter`` generations, ``seed``, ``polish=False``, ``updating='deferred'`` (a generation
-    is evaluated as a whole, so ``workers`` processes give the same result as one).
+    is evaluated as a whole, so ``workers`` processes give the same result as one). robot:
+    the robot tuned for (``Robot``; default: the default robot).
     """
     check_bounds()
     cpu0, wall0 = time.process_time(), time.monotonic()
-    runs = scenarios(quick, plant)
-    objective = Objective(runs)
+    runs = scenarios(quick, plant, robot)
+    objective = Objective(runs, robot.model)
     z0 = encode(START)
     j0, before, margins0 = objective.evaluate(z0)
     result = differential_evolution(
@@ -830,6 +852,8 @@ def tune(maxiter: int, popsize: int, seed: int, quick: bool = False, plant: str 
                   'k_v_rate_width': START.gains.k_v_rate_width,
                   'hysteresis_min_deg': HYSTERESIS_MIN_DEG},
         'plant': plant,
+        'robot': {'params': dict(robot.params),
+                  'body': None if robot.body is None else asdict(robot.body)},
         'scenarios': [run.name for run in runs],
         'start': {'params': START.as_dict(), 'cost': j0, 'metrics': before,
                   'margins': margins0},
@@ -845,7 +869,8 @@ def tune(maxiter: int, popsize: int, seed: int, quick: bool = False, plant: str 
                  'wall_s': time.monotonic() - wall0},
     }
     if not quick:
-        report['rise_estimate'] = [rise_estimate(l, TARGETS['startup']['overshoot_deg'])
+        report['rise_estimate'] = [rise_estimate(l, TARGETS['startup']['overshoot_deg'],
+                                                 p=robot.model)
                                    for l in HEIGHTS]
     return json_safe(report)
 
@@ -876,6 +901,20 @@ def print_report(report: dict, runs: Sequence[Run]) -> None:
                   _fmt(e['overshoot_for_rest_distance_deg'], 1)))
 
 
+def robot_of(configs: Sequence[str], sim_params: Optional[str]) -> Robot:
+    """Return the Robot of balance_node files (in order) and a sim_node file (ValueError)."""
+    import pathlib
+    from ...bringup.robot_config import build, read_params
+    flat: Dict[str, Any] = {}
+    for path in configs:
+        flat.update(read_params(pathlib.Path(path)))
+    body = None
+    if sim_params:
+        from ...identification.cli import sim_variant
+        body = sim_variant(sim_params)[0]
+    return Robot(build(flat).model, tuple(sorted(flat.items())), body)
+
+
 def main(argv=None) -> int:
     """Entry point of the ``tuning`` executable."""
     parser = argparse.ArgumentParser(
@@ -895,10 +934,20 @@ def main(argv=None) -> int:
     parser.add_argument('--seed', type=int, default=12, help='seed of the search (default 12)')
     parser.add_argument('--quick', action='store_true',
                         help='one start-up, short runs, a tiny budget (tests)')
+    parser.add_argument('--config', action='append', default=[], metavar='FILE.yaml',
+                        help="balance_node parameter files, in order (the robot's, then "
+                        "identify's fitted.yaml): tune for that robot's model (1)")
+    parser.add_argument('--sim-params', metavar='FILE.yaml',
+                        help='a sim_node parameter file: its robot.* is the MuJoCo robot')
     args = parser.parse_args(argv)
     maxiter, popsize = (1, 1) if args.quick else (args.maxiter, args.popsize)
-    report = tune(maxiter, popsize, args.seed, args.quick, args.plant, args.workers)
-    print_report(report, scenarios(args.quick, args.plant))
+    try:
+        robot = robot_of(args.config, args.sim_params)
+    except (ValueError, OSError) as e:
+        print('tuning: %s' % e, file=sys.stderr)
+        return 1
+    report = tune(maxiter, popsize, args.seed, args.quick, args.plant, args.workers, robot)
+    print_report(report, scenarios(args.quick, args.plant, robot))
     with open(args.output, 'w') as f:
         json.dump(report, f, indent=2)
     print('report: %s' % os.path.abspath(args.output))
