@@ -225,3 +225,33 @@ def test_mixed_robots_arm_hold_their_legs_and_disarm(make_bench, wheels, hips):
     assert not any(e.enabled for e in bench.motors.emulators.values())
     assert len(bench.motors.ids) == 6
     assert all(bench.motors.torque(i, bench.t) == 0.0 for i in bench.motors.ids)
+
+
+@pytest.mark.parametrize('protocol', ('cybergear', 'damiao'))
+def test_a_reboot_that_keeps_the_reading_faults_by_the_reply_s_state(make_bench, protocol):
+    # At 0.3 rad a DaMiao motor reads the same after power-up (within +-pi): no position jump.
+    # Its replies say "disabled" where they said "enabled": the reboot shows there.
+    bench = make_bench(protocol, wheel_angle=0.3)
+    left = bench.loop.motors.ids[0]
+    bench.motors.motor(left).reboot(0.3)
+    for _ in range(3):
+        bench.feed()
+        bench.tick()
+    assert bench.mode == int(Mode.FAULT)
+    faults = bench.loop.supervisor.faults
+    assert [f.code for f in faults] == ['motor_rebooted'], faults
+    if protocol == 'damiao':
+        assert 'answered disabled while commanded' in faults[0].message
+    assert no_torque(bench)
+
+
+@pytest.mark.parametrize('protocol', ('cybergear', 'damiao'))
+def test_a_disarm_s_disabled_replies_are_no_reboot(make_bench, protocol):
+    bench = make_bench(protocol)
+    bench.estop()
+    for _ in range(5):
+        bench.feed()
+        bench.tick()
+    assert bench.mode == int(Mode.DISARMED)
+    assert not any(m.rebooted for m in bench.loop.motors.motors)
+    assert not bench.loop.supervisor.faults

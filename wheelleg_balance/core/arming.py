@@ -117,7 +117,8 @@ class ArmingSupervisor:
         problem refuses arming (``motor_problems``).
         """
         sensing = self.sensing
-        scale, hot, problems = judge_motors(sensing.health, sensing.motors, motor_name)
+        scale, hot, problems = judge_motors(sensing.health, sensing.motors, motor_name,
+                                            self.safety._mode in COMMANDING)
         if problems:
             for code, text in problems:
                 if code:

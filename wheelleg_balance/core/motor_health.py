@@ -76,12 +76,15 @@ def position_jump(p_prev: float, v_prev: float, t_prev: float, p: float, v: floa
     return d if d > 0.0 else 0.0
 
 
-def judge_motors(sets, wheels, name) -> Tuple[float, Optional[str], List[Tuple[str, str]]]:
+def judge_motors(sets, wheels, name, commanding: bool = False
+                 ) -> Tuple[float, Optional[str], List[Tuple[str, str]]]:
     """
     Judge the newest replies of every motor set; return (scale, hot, problems).
 
     sets: (MotorSet, its model's figures: temp_derate, temp_max) pairs; wheels: the wheels'
-    MotorSet (their temperature derates the torque limit); name: a motor's name in a text.
+    MotorSet (their temperature derates the torque limit); name: a motor's name in a text;
+    commanding: the motors are meant to be enabled (a motor that answers disabled after enabled
+    then counts as rebooted; after a disarm that is expected).
     scale: the wheels' torque limit factor [-]; hot: why a motor is at temp_max (None: none);
     problems: (fault code, text) of each error code and reboot, and ('', text) for heat. A
     motor's error code is taken (reset) as it is judged.
@@ -103,6 +106,11 @@ def judge_motors(sets, wheels, name) -> Tuple[float, Optional[str], List[Tuple[s
                 m.error = 0
                 problems.append((MOTOR_ERROR, '%s error %d: %s'
                                  % (name(m), code, error_reason(code, motors.protocol))))
+            if m.switched_off:
+                m.switched_off = False
+                if commanding and m.rebooted is None:
+                    m.rebooted = ('answered disabled while commanded: rebooted, or switched off '
+                                  'by its own protection')
             if m.rebooted is not None:
                 notable = True
                 problems.append((MOTOR_REBOOTED, '%s %s' % (name(m), m.rebooted)))

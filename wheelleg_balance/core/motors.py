@@ -36,7 +36,7 @@ class Motor:
     """One motor: name, CAN ID, direction (+1/-1) and what its replies said."""
 
     __slots__ = ('name', 'motor_id', 'direction', 'last_reply', 'replies', 'feedback',
-                 'rebooted', 'error')
+                 'rebooted', 'error', 'switched_off')
 
     def __init__(self, name: str, motor_id: int, direction: int):
         self.name = name
@@ -50,6 +50,9 @@ class Motor:
         #: The newest non-zero error code a reply carried since the tick read it (0: none), so
         #: that a clean reply after it within one tick does not hide it.
         self.error = 0
+        #: A reply said "disabled" after one said "enabled" (protocols whose replies carry
+        #: the state: DaMiao, CyberGear); motor_health.judge_motors takes (resets) it.
+        self.switched_off = False
 
     def velocity(self) -> float:
         """Last reported velocity in the joint's convention [rad/s] (NaN: no reply yet)."""
@@ -157,6 +160,12 @@ class MotorSet:
         motor.feedback = feedback
         if feedback[5]:
             motor.error = feedback[5]
+            self.notable = True
+        elif feedback[6] is False and prev is not None and prev[6]:
+            # Enabled, now disabled without an error code (that one names its cause): a
+            # reboot (DaMiao and CyberGear power up disabled) or the drive's own protection;
+            # within +-pi a DaMiao reboot leaves no position jump.
+            motor.switched_off = True
             self.notable = True
         if feedback[4] is not None:   # a temperature
             self.notable = True

@@ -127,7 +127,9 @@ SAFETY_TABLE: Dict[str, Reaction] = {
                           _FAULT, 're-arm once the drive clears the code'),
     MOTOR_REBOOTED: Reaction(
         "a motor's position jumped by more than `position_jump` (a reboot: its angle is known "
-        'only modulo a rotor turn)', _FAULT + '; latched', 'restart balance_node'),
+        'only modulo a rotor turn), or a motor whose replies carry its state (DaMiao, '
+        'CyberGear) answered disabled after enabled while commanded', _FAULT + '; latched',
+        'restart balance_node'),
     OVER_TEMPERATURE: Reaction(
         'a motor at `temp_max` (from `temp_derate` on the wheel torque limit is derated)',
         'balancing: the sit-down; homing: FAULT', 'arming refused until it cools'),
