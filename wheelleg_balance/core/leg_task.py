@@ -216,7 +216,8 @@ class Legs:
         #: due(tick) for each tick % divider.
         self._due = tuple(tuple(leg for leg, at in self._phases if at == phase)
                           for phase in range(self.divider))
-        #: The hips' replies as read() last passed them, with the feedback they came from.
+        #: The hips' replies as read() last passed them (their torques may be older), with the
+        #: feedback they came from.
         self._replies: List[Optional[tuple]] = [None] * len(motors.motors)
         self._feedback: list = [None] * len(motors.motors)
         self.state: Optional[LegState] = None
@@ -239,14 +240,18 @@ class Legs:
 
     def read(self) -> LegState:
         """Update and return the legs' state from the newest replies."""
-        # replies(), with the reply of a motor whose feedback is the same object as before
-        # kept as it was (the controller keeps a leg's state while its replies stay equal).
+        # replies(), with the reply of a motor kept as it was while its feedback is the same
+        # object, or a new one of the same position and velocity (the state reads those two
+        # alone: the controller keeps a leg's state, and the whole one, while its replies are
+        # the same objects).
         replies, seen = self._replies, self._feedback
         for i, m in enumerate(self.motors.motors):
             fb = m.feedback
             if fb is not seen[i]:
                 seen[i] = fb
-                replies[i] = None if fb is None else fb[1:4]
+                r = replies[i]
+                if fb is None or r is None or r[0] != fb[1] or r[1] != fb[2]:
+                    replies[i] = None if fb is None else fb[1:4]
         self.state = self.controller.state(replies)
         return self.state
 

@@ -305,8 +305,10 @@ class LegController:
         self.gains = gains
         self.weight_share = float(weight_share)
         self.homed = False
-        #: Per leg: (the HipMotors, its two hips' replies, _leg_state's result), left and right.
+        #: Per leg: (the HipMotors, its two hips' replies, _leg_state's result), left and right;
+        #: the LegState built from the two.
         self._memo = [(None, None, None, None), (None, None, None, None)]
+        self._state: Optional[LegState] = None
         lo, hi = self.leg.height(self.leg.q_min, self.leg.q_min), \
             self.leg.height(self.leg.q_max, self.leg.q_max)
         #: The height range [m] the legs can be commanded to (their reach, symmetric stance).
@@ -348,7 +350,12 @@ class LegController:
     # ---- state ------------------------------------------------------------------------------
 
     def state(self, replies: Sequence[Reply]) -> LegState:
-        """Return the LegState from the four hip replies (None for a missing one); never raises."""
+        """
+        Return the LegState from the four hip replies (None for a missing one); never raises.
+
+        Only a reply's position and velocity count: a reply (p, v, tau) equal to the previous
+        one in those two may be passed again as it was (Legs.read does).
+        """
         n = len(replies)
         if n >= 4:
             r0, r1, r2, r3 = replies[0], replies[1], replies[2], replies[3]
@@ -356,21 +363,29 @@ class LegController:
             r0, r1, r2, r3 = (tuple(replies) + (None,) * 4)[:4]
         # Each leg's part is kept while its hips' replies and the offsets stay the same: with
         # the legs commanded in turns, one leg's hips have not replied since the previous tick.
+        # The whole state is kept while neither leg's part changed.
         m = self.motors
         left, right = self._memo
+        kept = True
         if not (left[0] is m and (left[1] is r0 or left[1] == r0)
                 and (left[2] is r1 or left[2] == r1)):
             left = self._memo[0] = (m, r0, r1, self._leg_state(LEFT_LEG, r0, r1))
+            kept = False
         if not (right[0] is m and (right[1] is r2 or right[1] == r2)
                 and (right[2] is r3 or right[2] == r3)):
             right = self._memo[1] = (m, r2, r3, self._leg_state(RIGHT_LEG, r2, r3))
+            kept = False
+        if kept:
+            return self._state
         left, right = left[3], right[3]
         problems = left[5] + right[5]
         valid = not problems
-        return _new(LegState, (left[0] + right[0], left[1] + right[1], (left[2], right[2]),
-                               0.5 * (left[2] + right[2]) if valid else math.nan,
-                               0.5 * (left[3] + right[3]) if valid else math.nan,
-                               left[4] + right[4], valid, problems))
+        self._state = _new(LegState, (
+            left[0] + right[0], left[1] + right[1], (left[2], right[2]),
+            0.5 * (left[2] + right[2]) if valid else math.nan,
+            0.5 * (left[3] + right[3]) if valid else math.nan,
+            left[4] + right[4], valid, problems))
+        return self._state
 
     def _leg_state(self, side: int, r_front: Reply, r_rear: Reply) -> _OneLeg:
         """One leg's part of the LegState from its hips' replies."""
