@@ -85,6 +85,21 @@ def _jacobian(pose, dfx: float, dfz: float, drx: float, drz: float, singular: fl
     return (dxc_f, dxc_r), (-dzc_f, -dzc_r)   # l = com_height - zc
 
 
+def force_at(j: Optional[Jacobian], tau_front: float, tau_rear: float) -> Tuple[float, float]:
+    """
+    Return FiveBarLeg.leg_force at a pose of Jacobian j: (f_x, f_l) [N] (nan, nan: j None).
+
+    For a caller that holds the pose's Jacobian already (core/legs.py, the state's).
+    """
+    if j is None:
+        return NAN, NAN
+    (a, b), (c, d) = j
+    det = a * d - b * c
+    if det == 0.0 or not math.isfinite(det):
+        return NAN, NAN
+    return (d * tau_front - c * tau_rear) / det, (a * tau_rear - b * tau_front) / det
+
+
 def _knee_angles(pose, q_front: float, q_rear: float) -> Tuple[float, float]:
     """Return FiveBarLeg.knee_angles of a solved pose (fx, fz, rx, rz, xc, zc) [m]."""
     fx, fz, rx, rz, xc, zc = pose
@@ -321,15 +336,7 @@ class FiveBarLeg:
         f_l > 0: the leg pushes the body up (it carries weight); a leg hanging from a lifted
         body holds its wheel: f_l < 0. (nan, nan) when out of reach or singular.
         """
-        # The jacobian() of the state's angles, looked up here (the load is asked every tick).
-        j = (self._solutions.get((q_front, q_rear)) or self._solution(q_front, q_rear))[1]
-        if j is None:
-            return NAN, NAN
-        (a, b), (c, d) = j
-        det = a * d - b * c
-        if det == 0.0 or not math.isfinite(det):
-            return NAN, NAN
-        return (d * tau_front - c * tau_rear) / det, (a * tau_rear - b * tau_front) / det
+        return force_at(self.jacobian(q_front, q_rear), tau_front, tau_rear)
 
     def knee_angles(self, q_front: float, q_rear: float) -> Tuple[float, float]:
         """

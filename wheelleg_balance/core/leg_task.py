@@ -260,14 +260,11 @@ class Legs:
         st = self.state
         if st is None or not st.valid:
             return math.nan
-        leg, dirs = self.controller.leg, self.controller.motors.directions
         tau = []
-        for d, m in zip(dirs, self.motors.motors):
+        for m in self.motors.motors:
             fb = m.feedback
-            tau.append(math.nan if fb is None else d * fb.torque)
-        q = st.q
-        return 0.5 * (leg.leg_force(q[0], q[1], tau[0], tau[1])[1]
-                      + leg.leg_force(q[2], q[3], tau[2], tau[3])[1])
+            tau.append(math.nan if fb is None else fb[3])   # MotorFeedback.torque
+        return self.controller.load(tau)
 
     def due(self, tick: int) -> Tuple[int, ...]:
         """

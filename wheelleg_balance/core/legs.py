@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import math
 from typing import List, NamedTuple, Optional, Sequence, Tuple
 
-from .kinematics import FiveBarLeg
+from .kinematics import FiveBarLeg, force_at, Jacobian
 from .protocols.mit import MitCommand
 from .rate_limiter import limit_rate
 
@@ -280,7 +280,11 @@ class LegState(NamedTuple):
 
 
 class _OneLeg(NamedTuple):
-    """One leg's part of a LegState: its two hips' q, q_dot; its height l, l_dot; knees."""
+    """
+    One leg's part of a LegState: its two hips' q, q_dot; its height l, l_dot; knees.
+
+    And the Jacobian at q (None: out of reach, singular or not measured), for the load.
+    """
 
     q: Tuple[float, float]
     q_dot: Tuple[float, float]
@@ -288,6 +292,7 @@ class _OneLeg(NamedTuple):
     l_dot: float
     knees: Tuple[float, float]
     problems: Tuple[str, ...]
+    j: Optional[Jacobian]
 
 
 class LegController:
@@ -415,8 +420,23 @@ class LegController:
             l_dot = nan if j is None else j[1][0] * q_dot[0] + j[1][1] * q_dot[1]
         else:
             l = l_dot = nan
-            knees = (nan, nan)
-        return _new(_OneLeg, ((qf, qr), (q_dot[0], q_dot[1]), l, l_dot, knees, problems))
+            knees, j = (nan, nan), None
+        return _new(_OneLeg, ((qf, qr), (q_dot[0], q_dot[1]), l, l_dot, knees, problems, j))
+
+    def load(self, torques: Sequence[float]) -> float:
+        """
+        Return the legs' mean load f_l [N] that the hips' torques [N m] hold at the state's pose.
+
+        torques: the four hips' (motor frame, HIP_NAMES order, NaN where unknown); the pose:
+        the newest state's (NaN unless it is valid). f_l > 0: the legs carry the body
+        (FiveBarLeg.leg_force).
+        """
+        st = self._state
+        if st is None or not st.valid:
+            return math.nan
+        d = self.motors.directions
+        return 0.5 * (force_at(self._memo[0][3].j, d[0] * torques[0], d[1] * torques[1])[1]
+                      + force_at(self._memo[1][3].j, d[2] * torques[2], d[3] * torques[3])[1])
 
     # ---- commands ---------------------------------------------------------------------------
 
