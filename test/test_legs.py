@@ -10,10 +10,11 @@ from hypothesis import given, settings, strategies as st
 import numpy as np
 import pytest
 
+from wheelleg_balance.core.homing import HipHoming, HomingConfig
 from wheelleg_balance.core.kinematics import FiveBarLeg
 from wheelleg_balance.core.legs import (
-    HeightShaper, HipHoming, HipMotors, HomingConfig, LEFT_LEG, LegController, LegGains,
-    RIGHT_LEG, RollLeveller, split_heights)
+    HeightShaper, HipMotors, LEFT_LEG, LegController, LegGains, RIGHT_LEG, RollLeveller,
+    split_heights)
 from wheelleg_balance.core.protocols.mit import MitProtocol
 from wheelleg_balance.sim.motor_emulator import MitMotorEmulator
 

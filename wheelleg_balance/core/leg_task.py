@@ -23,8 +23,9 @@ import math
 from typing import List, Optional, Tuple
 
 from .config import BalanceConfig
-from .legs import (HeightShaper, HipHoming, HipMotors, HomingConfig, LEFT_LEG, LegController,
-                   LegGains, LegState, RIGHT_LEG, RollLeveller, split_heights)
+from .homing import HipHoming, HomingConfig
+from .legs import (HeightShaper, HipMotors, LEFT_LEG, LegController, LegGains, LegState,
+                   RIGHT_LEG, RollLeveller, split_heights)
 from .motors import MotorSet
 from .protocols.base import Frame
 from .safety import Mode, SensorSnapshot
