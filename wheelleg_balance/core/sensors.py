@@ -118,9 +118,10 @@ class ImuReader:
         self.theta, self.roll = pitch, roll
         force = math.sqrt(ax * ax + ay * ay + az * az)
         self.specific_force = force if force > 0.0 else NAN
-        # mounting.vector_to_body, pitch_rate and yaw_rate inlined (the same operations; an
-        # unrotated mounting's identity changes no value).
-        if mounting.unrotated:
+        # mounting.vector_to_body, pitch_rate and yaw_rate inlined (the same operations). An
+        # unrotated mounting's identity changes no finite rate; its zeros turn an infinite one
+        # into NaN in the other two, which the checks must see: those take the product.
+        if mounting.unrotated and (wx - wx) + (wy - wy) + (wz - wz) == 0.0:
             omega_y, omega_z = wy, wz
             self.gyro = (wx, wy, wz)
         else:
