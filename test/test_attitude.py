@@ -310,3 +310,24 @@ def test_tail_window_is_the_arguments():
     assert is_on_tail(0.0, 0.5 + 11 * DEG, tail_pitch=0.5, pitch_tolerance=12 * DEG)
     assert not is_on_tail(math.nan, 0.5, tail_pitch=0.5)
     assert not is_upright(0.0, math.nan, 1.0, 1.0)
+
+
+@settings(max_examples=200, deadline=None)
+@given(rpy=st.tuples(*[st.floats(-3.0, 3.0)] * 3),
+       gyro=st.tuples(*[st.one_of(st.floats(-20.0, 20.0),
+                                  st.sampled_from([math.inf, -math.inf, math.nan]))] * 3),
+       valid=st.booleans())
+def test_an_unrotated_mounting_reads_as_the_rotation_by_the_identity(rpy, gyro, valid):
+    # The unrotated mounting's shortcut (no product with the identity) against the general
+    # path through the same mounting: the same attitude, rates and gyro (NaN where an
+    # infinite rate makes the product's NaN).
+    from wheelleg_balance.core.sensors import ImuReader, ImuSample
+    q = quaternion_from_rpy(*rpy)
+    sample = ImuSample(1.0, 1, 0, *q, valid, *gyro, 0.3, -0.2, 9.7, 1.0)
+    fast, general = ImuReader(), ImuReader()
+    assert fast.mounting.unrotated and not ImuMounting((0.0, 0.1, 0.0)).unrotated
+    general.mounting.unrotated = False
+    assert fast.take(sample) and general.take(sample)
+    assert fast.source == general.source
+    for name in ('theta', 'roll', 'theta_dot', 'yaw_rate', 'gyro'):
+        assert np.array_equal(getattr(fast, name), getattr(general, name), equal_nan=True), name

@@ -10,10 +10,11 @@ from hypothesis import given, settings, strategies as st
 import numpy as np
 import pytest
 
+from wheelleg_balance.core.homing import HipHoming, HomingConfig
 from wheelleg_balance.core.kinematics import FiveBarLeg
 from wheelleg_balance.core.legs import (
-    HeightShaper, HipHoming, HipMotors, HomingConfig, LEFT_LEG, LegController, LegGains,
-    RIGHT_LEG, RollLeveller, split_heights)
+    HeightShaper, HipMotors, LEFT_LEG, LegController, LegGains, RIGHT_LEG, RollLeveller,
+    split_heights)
 from wheelleg_balance.core.protocols.mit import MitProtocol
 from wheelleg_balance.sim.motor_emulator import MitMotorEmulator
 
@@ -219,6 +220,29 @@ def test_state_is_the_same_kept_or_computed_afresh():
         for a, b in zip(got[:6], want[:6]):
             assert np.array_equal(np.asarray(a, dtype=float), np.asarray(b, dtype=float),
                                   equal_nan=True)
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.floats(0.3, 0.75), st.floats(0.3, 0.75),
+       st.lists(st.floats(-30.0, 30.0), min_size=4, max_size=4), st.booleans())
+def test_load_is_the_mean_leg_force_at_the_state(l_left, l_right, tau, torque_only_changed):
+    # The legs' load from the Jacobians the state kept, as leg_force at the state's angles;
+    # also when a reply's torque alone changed (the state the same, the load not).
+    ctl = LegController(LEG, MOTORS)
+    q = LEG.inverse(l_left) + LEG.inverse(l_right)
+    replies = _replies(MOTORS, q)
+    ctl.state(replies)
+    if torque_only_changed:
+        replies = [(p, v, t + 1.0) for p, v, t in replies]
+    s = ctl.state(replies)
+    joint_tau = [d * t for d, t in zip(MOTORS.directions, tau)]
+    want = 0.5 * (LEG.leg_force(*s.q[:2], *joint_tau[:2])[1]
+                  + LEG.leg_force(*s.q[2:], *joint_tau[2:])[1])
+    assert np.array_equal(ctl.load(tau), want, equal_nan=True)
+    assert math.isnan(LegController(LEG, MOTORS).load(tau))   # no state yet
+    replies[1] = None
+    ctl.state(replies)
+    assert math.isnan(ctl.load(tau))   # an invalid state
 
 
 @settings(max_examples=200, deadline=None)

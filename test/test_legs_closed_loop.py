@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from wheelleg_balance.core.estimation import pitch_from_quaternion
-from wheelleg_balance.core.legs import (
-    HeightShaper, HipHoming, HipMotors, HomingConfig, LegController, LegGains)
+from wheelleg_balance.core.homing import HipHoming, HomingConfig
+from wheelleg_balance.core.legs import HeightShaper, HipMotors, LegController, LegGains
 from wheelleg_balance.core.pipeline import BalanceCore, CoreConfig, Measurement, Reference
 from wheelleg_balance.core.protocols.mit import MitProtocol
 from wheelleg_balance.core.wheel_state import WheelState

@@ -105,6 +105,9 @@ class ImuMounting:
         self.q_bi = quaternion_from_rpy(*values)
         self._q_ib = quaternion_conjugate(self.q_bi)
         self._r_bi = rotation_matrix(self.q_bi)
+        #: No rotation (rpy all zero): the readings are the body's as they are (a sample a
+        #: tick skips the product with the identity, which changes no value).
+        self.unrotated = values == [0.0, 0.0, 0.0]
 
     def orientation_to_body(self, q_wi: Quaternion) -> Quaternion:
         """Body orientation in the world q_wb = q_wi * q_bi^-1 from the IMU's q_wi (x, y, z, w)."""
@@ -257,13 +260,17 @@ def body_attitude(mounting: ImuMounting, orientation: Quaternion, covariance0: f
             # sqrt of a NaN or inf norm fails the comparison, as math.isfinite would.
             x, y, z, w = orientation
             if abs(math.sqrt(x * x + y * y + z * z + w * w) - 1.0) <= QUATERNION_NORM_TOLERANCE:
-                bx, by, bz, bw = mounting._q_ib
-                qx = w * bx + x * bw + y * bz - z * by
-                qy = w * by - x * bz + y * bw + z * bx
-                qz = w * bz + x * by - y * bx + z * bw
-                qw = w * bw - x * bx - y * by - z * bz
-                if abs(math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw) - 1.0) \
-                        <= QUATERNION_NORM_TOLERANCE:
+                if mounting.unrotated:   # q_wi * (0, 0, 0, 1) is q_wi, of unit norm already
+                    qx, qy, qz, qw, unit = x, y, z, w, True
+                else:
+                    bx, by, bz, bw = mounting._q_ib
+                    qx = w * bx + x * bw + y * bz - z * by
+                    qy = w * by - x * bz + y * bw + z * bx
+                    qz = w * bz + x * by - y * bx + z * bw
+                    qw = w * bw - x * bx - y * by - z * bz
+                    unit = abs(math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw) - 1.0) \
+                        <= QUATERNION_NORM_TOLERANCE
+                if unit:
                     # Up in body coordinates (roll_pitch_from_up).
                     uy, uz = 2.0 * (qy * qz + qw * qx), qw * qw - qx * qx - qy * qy + qz * qz
                     roll = math.atan2(uy, uz)

@@ -61,6 +61,45 @@ def _keep(store: dict, key, value):
     return value
 
 
+def _jacobian(pose, dfx: float, dfz: float, drx: float, drz: float, singular: float):
+    """
+    Return the Jacobian of a solved pose (fx, fz, rx, rz, xc, zc) [m], None when singular.
+
+    (dfx, dfz), (drx, drz): the front and rear knee's velocities per unit hip rate [m/rad].
+    From the closure of the two shanks: each keeps its length, so (P - K_i) . (dP - dK_i/dq_i
+    dq_i) = 0 for the axle P and knee K_i, two linear equations in dP; ``singular``: the
+    determinant [m^2] below which the shanks count as in line.
+    """
+    fx, fz, rx, rz, xc, zc = pose
+    # Shank vectors knee -> axle.
+    ufx, ufz = xc - fx, zc - fz
+    urx, urz = xc - rx, zc - rz
+    bf = ufx * dfx + ufz * dfz
+    br = urx * drx + urz * drz
+    det = ufx * urz - ufz * urx
+    if abs(det) < singular:
+        return None
+    # [ufx ufz; urx urz] dP = diag(bf, br) dq  ->  dP = A^-1 B dq.
+    dxc_f, dxc_r = urz * bf / det, -ufz * br / det
+    dzc_f, dzc_r = -urx * bf / det, ufx * br / det
+    return (dxc_f, dxc_r), (-dzc_f, -dzc_r)   # l = com_height - zc
+
+
+def force_at(j: Optional[Jacobian], tau_front: float, tau_rear: float) -> Tuple[float, float]:
+    """
+    Return FiveBarLeg.leg_force at a pose of Jacobian j: (f_x, f_l) [N] (nan, nan: j None).
+
+    For a caller that holds the pose's Jacobian already (core/legs.py, the state's).
+    """
+    if j is None:
+        return NAN, NAN
+    (a, b), (c, d) = j
+    det = a * d - b * c
+    if det == 0.0 or not math.isfinite(det):
+        return NAN, NAN
+    return (d * tau_front - c * tau_rear) / det, (a * tau_rear - b * tau_front) / det
+
+
 def _knee_angles(pose, q_front: float, q_rear: float) -> Tuple[float, float]:
     """Return FiveBarLeg.knee_angles of a solved pose (fx, fz, rx, rz, xc, zc) [m]."""
     fx, fz, rx, rz, xc, zc = pose
@@ -183,18 +222,8 @@ class FiveBarLeg:
         # (ez, -ex) is the downward normal when the front knee is ahead of the rear one.
         xc, zc = 0.5 * (fx + rx) + half_chord * ez, 0.5 * (fz + rz) - half_chord * ex
         pose = (fx, fz, rx, rz, xc, zc)
-        # Shank vectors knee -> axle, and the knees' velocities per unit hip rate.
-        ufx, ufz = xc - fx, zc - fz
-        urx, urz = xc - rx, zc - rz
-        bf = ufx * (-a * sf) + ufz * (-a * cf)
-        br = urx * (a * sr) + urz * (-a * cr)
-        det = ufx * urz - ufz * urx
-        if abs(det) < singular:
-            return pose, None
-        # [ufx ufz; urx urz] dP = diag(bf, br) dq  ->  dP = A^-1 B dq.
-        dxc_f, dxc_r = urz * bf / det, -ufz * br / det
-        dzc_f, dzc_r = -urx * bf / det, ufx * br / det
-        return pose, ((dxc_f, dxc_r), (-dzc_f, -dzc_r))   # l = com_height - zc
+        # The knees' velocities per unit hip rate: d(fx, fz)/dq_front, d(rx, rz)/dq_rear.
+        return pose, _jacobian(pose, -a * sf, -a * cf, a * sr, -a * cr, singular)
 
     def jacobian(self, q_front: float, q_rear: float) -> Optional[Jacobian]:
         """
@@ -276,7 +305,9 @@ class FiveBarLeg:
 
         For the axle l [m] below the COM (x = 0) moving at l_dot [m/s] under the load (f_x, f_l)
         [N]: q [rad] = inverse(l), the rates [rad/s] = hip_rates(q, l_dot), the torques [N m] =
-        static_torques(q, f_l, f_x), the same values in one call (nan where those give nan).
+        static_torques(q, f_l, f_x), the same values in one call (nan where those give nan),
+        but for rounding: the Jacobian here comes from the inverse solve's knees, not from a
+        forward solve at the angles.
         """
         # The angles and Jacobian of a held height are kept (the legs alternate ticks, and
         # without levelling both legs share one height); a new height is solved afresh, not
@@ -285,9 +316,8 @@ class FiveBarLeg:
         if l == held_l:
             q_front, q_rear, j = held
         else:
-            q_front, q_rear = self.inverse(l)
-            j = self._linkage(q_front, q_rear)[1]
-            self._held = (l, (q_front, q_rear, j))
+            q_front, q_rear, j = held = self._inverse(l, 0.0)
+            self._held = (l, held)
         if j is None:
             return q_front, q_rear, NAN, NAN, NAN, NAN
         (a, b), (c, d) = j
@@ -306,15 +336,7 @@ class FiveBarLeg:
         f_l > 0: the leg pushes the body up (it carries weight); a leg hanging from a lifted
         body holds its wheel: f_l < 0. (nan, nan) when out of reach or singular.
         """
-        # The jacobian() of the state's angles, looked up here (the load is asked every tick).
-        j = (self._solutions.get((q_front, q_rear)) or self._solution(q_front, q_rear))[1]
-        if j is None:
-            return NAN, NAN
-        (a, b), (c, d) = j
-        det = a * d - b * c
-        if det == 0.0 or not math.isfinite(det):
-            return NAN, NAN
-        return (d * tau_front - c * tau_rear) / det, (a * tau_rear - b * tau_front) / det
+        return force_at(self.jacobian(q_front, q_rear), tau_front, tau_rear)
 
     def knee_angles(self, q_front: float, q_rear: float) -> Tuple[float, float]:
         """
@@ -341,14 +363,25 @@ class FiveBarLeg:
         The axle goes l [m] below the COM and x [m] ahead of it, knees outward. Returns
         (nan, nan) when the point is out of reach or needs an angle outside [q_min, q_max].
         """
+        return self._inverse(l, x)[:2]
+
+    def _inverse(self, l: float, x: float):
+        """
+        Return inverse(l, x) and the Jacobian there: (q_front, q_rear, Jacobian or None).
+
+        The Jacobian (see jacobian()) from the solve's own knees and axle, without a forward
+        solve; None when out of reach, at a limit's NaN, or singular.
+        """
         xc = x + self.com_x
         zc = self.com_height - l
         a_b, reach, a2_b2, a2, lo, hi = self._ik   # |a - b|, a + b, a^2 - b^2, a^2, limits
         q_front = q_rear = NAN
+        half = self._half
+        knees = []
         # Each hip's thigh angle below its outward horizontal that reaches the axle; (px, pz)
         # is the axle relative to the hip, px measured outward (forward for the front hip,
         # backward for the rear one), so both hips share the formula.
-        for rear, px in ((False, xc - self._half), (True, -(xc + self._half))):
+        for rear, px in ((False, xc - half), (True, -(xc + half))):
             d2 = px * px + zc * zc
             d = math.sqrt(d2) if d2 == d2 else NAN
             if not (a_b <= d <= reach) or d == 0.0:
@@ -357,15 +390,21 @@ class FiveBarLeg:
             h2 = a2 - t * t
             h = math.sqrt(h2) if h2 > 0.0 else 0.0     # perpendicular, towards the outside
             ux, uz = px / d, zc / d
-            kx = t * ux - h * uz
+            kx = t * ux - h * uz   # the knee from the hip: (a cos q, -a sin q), outward
             kz = t * uz + h * ux
+            knees += (kx, kz)
             if rear:
                 q_rear = math.atan2(-kz, kx)
             else:
                 q_front = math.atan2(-kz, kx)
         if not (lo <= q_front <= hi and lo <= q_rear <= hi):
-            return NAN, NAN
+            return NAN, NAN, None
         # Rounding can put an angle a hair outside a limit it really sits on.
         lo, hi = self.q_min, self.q_max
+        kfx, kfz, krx, krz = knees
+        # The knees in the hip-midpoint frame; their velocities per unit hip rate, (-a sin q,
+        # -a cos q) front and (a sin q, -a cos q) rear, from the same (a cos q, -a sin q).
         return (lo if lo > q_front else hi if hi < q_front else q_front,
-                lo if lo > q_rear else hi if hi < q_rear else q_rear)
+                lo if lo > q_rear else hi if hi < q_rear else q_rear,
+                _jacobian((half + kfx, kfz, -half - krx, krz, xc, zc), kfz, -kfx, -krz, -krx,
+                          self._reach[4]))

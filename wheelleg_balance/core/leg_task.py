@@ -23,8 +23,9 @@ import math
 from typing import List, Optional, Tuple
 
 from .config import BalanceConfig
-from .legs import (HeightShaper, HipHoming, HipMotors, HomingConfig, LEFT_LEG, LegController,
-                   LegGains, LegState, RIGHT_LEG, RollLeveller, split_heights)
+from .homing import HipHoming, HomingConfig
+from .legs import (HeightShaper, HipMotors, LEFT_LEG, LegController, LegGains, LegState,
+                   RIGHT_LEG, RollLeveller, split_heights)
 from .motors import MotorSet
 from .protocols.base import Frame
 from .safety import Mode, SensorSnapshot
@@ -216,7 +217,8 @@ class Legs:
         #: due(tick) for each tick % divider.
         self._due = tuple(tuple(leg for leg, at in self._phases if at == phase)
                           for phase in range(self.divider))
-        #: The hips' replies as read() last passed them, with the feedback they came from.
+        #: The hips' replies as read() last passed them (their torques may be older), with the
+        #: feedback they came from.
         self._replies: List[Optional[tuple]] = [None] * len(motors.motors)
         self._feedback: list = [None] * len(motors.motors)
         self.state: Optional[LegState] = None
@@ -239,14 +241,18 @@ class Legs:
 
     def read(self) -> LegState:
         """Update and return the legs' state from the newest replies."""
-        # replies(), with the reply of a motor whose feedback is the same object as before
-        # kept as it was (the controller keeps a leg's state while its replies stay equal).
+        # replies(), with the reply of a motor kept as it was while its feedback is the same
+        # object, or a new one of the same position and velocity (the state reads those two
+        # alone: the controller keeps a leg's state, and the whole one, while its replies are
+        # the same objects).
         replies, seen = self._replies, self._feedback
         for i, m in enumerate(self.motors.motors):
             fb = m.feedback
             if fb is not seen[i]:
                 seen[i] = fb
-                replies[i] = None if fb is None else fb[1:4]
+                r = replies[i]
+                if fb is None or r is None or r[0] != fb[1] or r[1] != fb[2]:
+                    replies[i] = None if fb is None else fb[1:4]
         self.state = self.controller.state(replies)
         return self.state
 
@@ -255,14 +261,11 @@ class Legs:
         st = self.state
         if st is None or not st.valid:
             return math.nan
-        leg, dirs = self.controller.leg, self.controller.motors.directions
         tau = []
-        for d, m in zip(dirs, self.motors.motors):
+        for m in self.motors.motors:
             fb = m.feedback
-            tau.append(math.nan if fb is None else d * fb.torque)
-        q = st.q
-        return 0.5 * (leg.leg_force(q[0], q[1], tau[0], tau[1])[1]
-                      + leg.leg_force(q[2], q[3], tau[2], tau[3])[1])
+            tau.append(math.nan if fb is None else fb[3])   # MotorFeedback.torque
+        return self.controller.load(tau)
 
     def due(self, tick: int) -> Tuple[int, ...]:
         """

@@ -26,19 +26,15 @@ Per tick the pieces are (docs/legs.md has the figures):
 - ``LegController.damping_commands``: kp = 0, kd > 0 (and optionally part of the weight's
   static torque while the state is valid): the body sinks slowly instead of dropping, for a
   disarm or a fault;
-- ``HipHoming``: a hip motor knows its output angle after power-up only modulo one rotor turn
-  through its gear (40 deg for 9:1; sim/motor_emulator.py reboot). Homing drives each hip at a
-  low speed towards its hard stop with a soft position ramp (low kp), detects the stop (speed
-  about zero while the torque towards the stop has grown past a threshold) and records the
-  offset that makes the reading the stop's known angle. ``LegController.home_known_pose`` is
-  the other way: the legs are known to be at given angles (after the motors' set-zero in a
-  documented pose, or held in a jig). Arming is refused until one of the two has run.
+- homing: at the hard stops (core/homing.py ``HipHoming``), or ``LegController.home_known_pose``
+  where the legs are known to be at given angles (after the motors' set-zero in a documented
+  pose, or held in a jig). Arming is refused until one of the two has run.
 """
 from dataclasses import dataclass
 import math
 from typing import List, NamedTuple, Optional, Sequence, Tuple
 
-from .kinematics import FiveBarLeg
+from .kinematics import FiveBarLeg, force_at, Jacobian
 from .protocols.mit import MitCommand
 from .rate_limiter import limit_rate
 
@@ -280,7 +276,11 @@ class LegState(NamedTuple):
 
 
 class _OneLeg(NamedTuple):
-    """One leg's part of a LegState: its two hips' q, q_dot; its height l, l_dot; knees."""
+    """
+    One leg's part of a LegState: its two hips' q, q_dot; its height l, l_dot; knees.
+
+    And the Jacobian at q (None: out of reach, singular or not measured), for the load.
+    """
 
     q: Tuple[float, float]
     q_dot: Tuple[float, float]
@@ -288,6 +288,7 @@ class _OneLeg(NamedTuple):
     l_dot: float
     knees: Tuple[float, float]
     problems: Tuple[str, ...]
+    j: Optional[Jacobian]
 
 
 class LegController:
@@ -305,8 +306,10 @@ class LegController:
         self.gains = gains
         self.weight_share = float(weight_share)
         self.homed = False
-        #: Per leg: (the HipMotors, its two hips' replies, _leg_state's result), left and right.
+        #: Per leg: (the HipMotors, its two hips' replies, _leg_state's result), left and right;
+        #: the LegState built from the two.
         self._memo = [(None, None, None, None), (None, None, None, None)]
+        self._state: Optional[LegState] = None
         lo, hi = self.leg.height(self.leg.q_min, self.leg.q_min), \
             self.leg.height(self.leg.q_max, self.leg.q_max)
         #: The height range [m] the legs can be commanded to (their reach, symmetric stance).
@@ -348,7 +351,12 @@ class LegController:
     # ---- state ------------------------------------------------------------------------------
 
     def state(self, replies: Sequence[Reply]) -> LegState:
-        """Return the LegState from the four hip replies (None for a missing one); never raises."""
+        """
+        Return the LegState from the four hip replies (None for a missing one); never raises.
+
+        Only a reply's position and velocity count: a reply (p, v, tau) equal to the previous
+        one in those two may be passed again as it was (Legs.read does).
+        """
         n = len(replies)
         if n >= 4:
             r0, r1, r2, r3 = replies[0], replies[1], replies[2], replies[3]
@@ -356,21 +364,29 @@ class LegController:
             r0, r1, r2, r3 = (tuple(replies) + (None,) * 4)[:4]
         # Each leg's part is kept while its hips' replies and the offsets stay the same: with
         # the legs commanded in turns, one leg's hips have not replied since the previous tick.
+        # The whole state is kept while neither leg's part changed.
         m = self.motors
         left, right = self._memo
+        kept = True
         if not (left[0] is m and (left[1] is r0 or left[1] == r0)
                 and (left[2] is r1 or left[2] == r1)):
             left = self._memo[0] = (m, r0, r1, self._leg_state(LEFT_LEG, r0, r1))
+            kept = False
         if not (right[0] is m and (right[1] is r2 or right[1] == r2)
                 and (right[2] is r3 or right[2] == r3)):
             right = self._memo[1] = (m, r2, r3, self._leg_state(RIGHT_LEG, r2, r3))
+            kept = False
+        if kept:
+            return self._state
         left, right = left[3], right[3]
         problems = left[5] + right[5]
         valid = not problems
-        return _new(LegState, (left[0] + right[0], left[1] + right[1], (left[2], right[2]),
-                               0.5 * (left[2] + right[2]) if valid else math.nan,
-                               0.5 * (left[3] + right[3]) if valid else math.nan,
-                               left[4] + right[4], valid, problems))
+        self._state = _new(LegState, (
+            left[0] + right[0], left[1] + right[1], (left[2], right[2]),
+            0.5 * (left[2] + right[2]) if valid else math.nan,
+            0.5 * (left[3] + right[3]) if valid else math.nan,
+            left[4] + right[4], valid, problems))
+        return self._state
 
     def _leg_state(self, side: int, r_front: Reply, r_rear: Reply) -> _OneLeg:
         """One leg's part of the LegState from its hips' replies."""
@@ -400,8 +416,23 @@ class LegController:
             l_dot = nan if j is None else j[1][0] * q_dot[0] + j[1][1] * q_dot[1]
         else:
             l = l_dot = nan
-            knees = (nan, nan)
-        return _new(_OneLeg, ((qf, qr), (q_dot[0], q_dot[1]), l, l_dot, knees, problems))
+            knees, j = (nan, nan), None
+        return _new(_OneLeg, ((qf, qr), (q_dot[0], q_dot[1]), l, l_dot, knees, problems, j))
+
+    def load(self, torques: Sequence[float]) -> float:
+        """
+        Return the legs' mean load f_l [N] that the hips' torques [N m] hold at the state's pose.
+
+        torques: the four hips' (motor frame, HIP_NAMES order, NaN where unknown); the pose:
+        the newest state's (NaN unless it is valid). f_l > 0: the legs carry the body
+        (FiveBarLeg.leg_force).
+        """
+        st = self._state
+        if st is None or not st.valid:
+            return math.nan
+        d = self.motors.directions
+        return 0.5 * (force_at(self._memo[0][3].j, d[0] * torques[0], d[1] * torques[1])[1]
+                      + force_at(self._memo[1][3].j, d[2] * torques[2], d[3] * torques[3])[1])
 
     # ---- commands ---------------------------------------------------------------------------
 
@@ -479,117 +510,3 @@ class LegController:
                 tau = ff
         return [MitCommand(m.motor_ids[side + k], 0.0, 0.0, 0.0, g.damping_kd,
                            m.directions[side + k] * tau[k]) for k in (0, 1)]
-
-
-# ---- homing at the hard stops --------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class HomingConfig:
-    """
-    Homing at the hard stops.
-
-    stop_angles: the joint angle [rad] of each hip's stop (FiveBarLeg convention; default: the
-    lower joint limit -0.2 rad, legs folded, where the body's weight helps); toward: -1 to
-    reach the stops by decreasing q, +1 by increasing it; speed: joint speed of the ramp
-    [rad/s]; kp [N m/rad], kd [N m s/rad]: the soft ramp's gains; torque_threshold: torque
-    towards the stop [N m] and speed_threshold [rad/s] below which, for dwell [s], a hip is at
-    its stop; max_torque: the ramp never leads the hip by more than this torque's worth [N m];
-    timeout [s]: homing fails if not done by then.
-    """
-
-    stop_angles: Tuple[float, float, float, float] = (-0.2, -0.2, -0.2, -0.2)
-    toward: int = -1
-    speed: float = 0.3
-    kp: float = 30.0
-    kd: float = 1.0
-    torque_threshold: float = 3.0
-    speed_threshold: float = 0.05
-    dwell: float = 0.1
-    max_torque: float = 6.0
-    timeout: float = 20.0
-
-    def __post_init__(self):
-        """Check the ranges."""
-        if self.toward not in (1, -1) or len(self.stop_angles) != 4:
-            raise ValueError('toward must be 1 or -1, stop_angles four angles')
-        if not (self.speed > 0.0 and self.kp > 0.0 and self.kd >= 0.0
-                and 0.0 < self.torque_threshold < self.max_torque
-                and self.speed_threshold > 0.0 and self.dwell >= 0.0 and self.timeout > 0.0):
-            raise ValueError('homing: speed, kp > 0; 0 < torque_threshold < max_torque; ...')
-
-
-class HipHoming:
-    """
-    Drives the four hips to their hard stops and measures their offsets (see HomingConfig).
-
-    Call step(replies, now) every tick with the hips' replies (position, velocity, torque in
-    the motor frame; None where none came) and send the commands it returns. ``status`` is
-    'running', 'done' (then ``offsets`` holds the four offsets for LegController.set_offsets)
-    or 'failed' (``reason`` says why). The motors must be in motor mode.
-    """
-
-    def __init__(self, motors: HipMotors, config: HomingConfig = HomingConfig()):
-        self.motors = motors
-        self.config = config
-        self.status = 'running'
-        self.reason = ''
-        self.offsets: Optional[Tuple[float, ...]] = None
-        self._start: Optional[float] = None
-        self._ref: List[Optional[float]] = [None] * 4     # ramp position, motor frame [rad]
-        self._stopped_since: List[Optional[float]] = [None] * 4
-        self._at_stop: List[Optional[float]] = [None] * 4  # motor position at the stop [rad]
-        self._last: Optional[float] = None
-
-    def step(self, replies: Sequence[Reply], now: float) -> List[MitCommand]:
-        """Advance the homing to time now [s]; return the four hips' commands."""
-        c, m = self.config, self.motors
-        if self._start is None:
-            self._start = now
-        dt = 0.0 if self._last is None else max(0.0, now - self._last)
-        self._last = now
-        if self.status == 'running' and now - self._start > c.timeout:
-            self.status, self.reason = 'failed', 'timeout after %.1f s' % c.timeout
-        out = []
-        for i in range(4):
-            d = m.directions[i]
-            r = replies[i] if i < len(replies) else None
-            ok = r is not None and all(_finite(v) for v in r)
-            if self.status != 'running' or self._at_stop[i] is not None:
-                hold = self._at_stop[i] if self._at_stop[i] is not None else self._ref[i]
-                out.append(self._command(i, hold, 0.0))
-                continue
-            if not ok:
-                out.append(self._command(i, self._ref[i], 0.0))
-                continue
-            p, v, tau = r
-            if self._ref[i] is None:
-                self._ref[i] = p
-            # Motor-frame direction towards the stop; the ramp leads the hip by at most
-            # max_torque / kp (a hip that runs ahead, pulled by the weight, is held back).
-            s = d * c.toward
-            ref = self._ref[i] + s * c.speed * dt
-            if s * (ref - p) > c.max_torque / c.kp:
-                ref = p + s * c.max_torque / c.kp
-            self._ref[i] = ref
-            pushing = s * tau >= c.torque_threshold
-            if pushing and abs(v) < c.speed_threshold:
-                since = self._stopped_since[i]
-                if since is None:
-                    self._stopped_since[i] = now
-                elif now - since >= c.dwell:
-                    self._at_stop[i] = p
-            else:
-                self._stopped_since[i] = None
-            out.append(self._command(i, self._ref[i], s * c.speed))
-        if self.status == 'running' and all(a is not None for a in self._at_stop):
-            self.offsets = tuple(c.stop_angles[i] - m.directions[i] * self._at_stop[i]
-                                 for i in range(4))
-            self.status = 'done'
-        return out
-
-    def _command(self, i: int, p: Optional[float], v: float) -> MitCommand:
-        c = self.config
-        if p is None:   # no reply yet: damping only
-            return MitCommand(self.motors.motor_ids[i], 0.0, 0.0, 0.0, c.kd, 0.0)
-        return MitCommand(self.motors.motor_ids[i], p, v, c.kp, c.kd, 0.0)

@@ -118,11 +118,17 @@ class ImuReader:
         self.theta, self.roll = pitch, roll
         force = math.sqrt(ax * ax + ay * ay + az * az)
         self.specific_force = force if force > 0.0 else NAN
-        # mounting.vector_to_body, pitch_rate and yaw_rate inlined (the same operations).
-        r0, r1, r2 = mounting._r_bi
-        omega_y = r1[0] * wx + r1[1] * wy + r1[2] * wz
-        omega_z = r2[0] * wx + r2[1] * wy + r2[2] * wz
-        self.gyro = (r0[0] * wx + r0[1] * wy + r0[2] * wz, omega_y, omega_z)
+        # mounting.vector_to_body, pitch_rate and yaw_rate inlined (the same operations). An
+        # unrotated mounting's identity changes no finite rate; its zeros turn an infinite one
+        # into NaN in the other two, which the checks must see: those take the product.
+        if mounting.unrotated and (wx - wx) + (wy - wy) + (wz - wz) == 0.0:
+            omega_y, omega_z = wy, wz
+            self.gyro = (wx, wy, wz)
+        else:
+            r0, r1, r2 = mounting._r_bi
+            omega_y = r1[0] * wx + r1[1] * wy + r1[2] * wz
+            omega_z = r2[0] * wx + r2[1] * wy + r2[2] * wz
+            self.gyro = (r0[0] * wx + r0[1] * wy + r0[2] * wz, omega_y, omega_z)
         if roll == roll:
             cos_r, sin_r = math.cos(roll), math.sin(roll)
             self.theta_dot = omega_y * cos_r - omega_z * sin_r
