@@ -111,18 +111,24 @@ def test_an_over_temperature_sits_down(make_bench, protocol):
     assert any('deg C' in text and 'temp_max' in text for _, text in events), events
 
 
-@pytest.mark.parametrize('protocol', ('cybergear', 'damiao'))
-def test_a_reboot_that_moves_the_reading_faults(make_bench, protocol):
+@pytest.mark.parametrize('protocol, angle, reason', [
     # Both lose the turn count at power-up (CyberGear also its zero): 5 rad reads otherwise
     # (DaMiao: within +-pi, 5 - 2 pi; CyberGear: within a rotor turn of its 7.75:1 gear).
-    bench = make_bench(protocol, wheel_angle=5.0)
+    ('cybergear', 5.0, ''), ('damiao', 5.0, 'position jumped'),
+    # At 0.3 rad a DaMiao motor reads the same after power-up: no jump. Its replies say
+    # "disabled" where they said "enabled": the reboot shows there.
+    ('cybergear', 0.3, ''), ('damiao', 0.3, 'answered disabled while commanded')])
+def test_a_reboot_faults(make_bench, protocol, angle, reason):
+    bench = make_bench(protocol, wheel_angle=angle)
     left = bench.loop.motors.ids[0]
-    bench.motors.motor(left).reboot(5.0)
+    bench.motors.motor(left).reboot(angle)
     for _ in range(3):
         bench.feed()
         bench.tick()
     assert bench.mode == int(Mode.FAULT)
-    assert [f.code for f in bench.loop.supervisor.faults] == ['motor_rebooted']
+    faults = bench.loop.supervisor.faults
+    assert [f.code for f in faults] == ['motor_rebooted'] and reason in faults[0].message
+    assert no_torque(bench)
 
 
 def test_an_lk_reboot_loses_nothing_the_tick_needs(make_bench):
@@ -225,24 +231,6 @@ def test_mixed_robots_arm_hold_their_legs_and_disarm(make_bench, wheels, hips):
     assert not any(e.enabled for e in bench.motors.emulators.values())
     assert len(bench.motors.ids) == 6
     assert all(bench.motors.torque(i, bench.t) == 0.0 for i in bench.motors.ids)
-
-
-@pytest.mark.parametrize('protocol', ('cybergear', 'damiao'))
-def test_a_reboot_that_keeps_the_reading_faults_by_the_reply_s_state(make_bench, protocol):
-    # At 0.3 rad a DaMiao motor reads the same after power-up (within +-pi): no position jump.
-    # Its replies say "disabled" where they said "enabled": the reboot shows there.
-    bench = make_bench(protocol, wheel_angle=0.3)
-    left = bench.loop.motors.ids[0]
-    bench.motors.motor(left).reboot(0.3)
-    for _ in range(3):
-        bench.feed()
-        bench.tick()
-    assert bench.mode == int(Mode.FAULT)
-    faults = bench.loop.supervisor.faults
-    assert [f.code for f in faults] == ['motor_rebooted'], faults
-    if protocol == 'damiao':
-        assert 'answered disabled while commanded' in faults[0].message
-    assert no_torque(bench)
 
 
 @pytest.mark.parametrize('protocol', ('cybergear', 'damiao'))
