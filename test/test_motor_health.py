@@ -11,8 +11,9 @@ import math
 import pytest
 
 from wheelleg_balance.core.config import DEFAULTS
-from wheelleg_balance.core.motor_health import derate, DERATE_FLOOR, error_reason, \
-    MAX_ACCELERATION, position_jump
+from wheelleg_balance.core.motor_health import derate, DERATE_FLOOR, MAX_ACCELERATION, \
+    position_jump
+from wheelleg_balance.core.protocols.mit import MitProtocol
 from wheelleg_balance.core.safety import Mode
 from wheelleg_balance.validation.faults.bench import is_zero_torque, LoopBench, make_imu
 
@@ -41,6 +42,7 @@ def test_position_jump_is_taken_modulo_the_wrap_of_the_reply_field():
         pytest.approx(2 * math.pi / 9 - slack)
     # A late reply (20 ms) of a wheel accelerating at 1500 rad/s^2 is no jump.
     assert position_jump(0.0, 0.0, 0.0, 0.5 * 1500 * 0.02 ** 2, 30.0, 0.02, span) == 0.0
+    error_reason = MitProtocol().error_reason   # the reasons of MIT replies' error codes
     assert error_reason(2) == 'over-current' and error_reason(99) == 'unknown error code'
 
 

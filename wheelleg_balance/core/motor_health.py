@@ -17,20 +17,10 @@ Motor health from the replies: temperature, error codes, a reboot (no rclpy, no 
 import math
 from typing import List, Optional, Tuple
 
-from .protocols.mit import MIT_ERROR_CODES
 from .safety import MOTOR_ERROR, MOTOR_REBOOTED
 
 #: Share of the torque limit left at temp_max.
 DERATE_FLOOR = 0.5
-#: The MIT reply's error codes (CubeMars AK); other protocols give their own (error_reason).
-ERROR_CODES = MIT_ERROR_CODES
-
-
-def error_reason(code: int, protocol=None) -> str:
-    """Return the decoded reason of a motor error code (of ``protocol``'s replies; MIT's)."""
-    if protocol is not None:
-        return protocol.error_reason(code)
-    return ERROR_CODES.get(int(code), 'unknown error code')
 
 
 def derate(temperature: Optional[float], temp_derate: float, temp_max: float) -> float:
@@ -105,7 +95,7 @@ def judge_motors(sets, wheels, name, commanding: bool = False
             if code:
                 m.error = 0
                 problems.append((MOTOR_ERROR, '%s error %d: %s'
-                                 % (name(m), code, error_reason(code, motors.protocol))))
+                                 % (name(m), code, motors.protocol.error_reason(code))))
             if m.switched_off:
                 m.switched_off = False
                 if commanding and m.rebooted is None:
