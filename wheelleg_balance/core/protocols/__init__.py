@@ -5,8 +5,8 @@ CAN motor protocols as pure byte codecs (no python-can): see docs/can_protocols.
 codec class; everything about a protocol is on that class and in its module (frames out,
 replies in, special frames, its configuration section ``config``, frames per tick, reply
 health, the position's wrap or saturation, its emulator). ``make_protocol(name, **params)``
-builds a codec from keyword arguments, ``protocol_from_config(name, section)`` from its
-configuration section; ``register_protocol`` adds one (a test's, a builder's) at run time.
+builds a codec from keyword arguments, ``protocol_for(name, owner)`` from its configuration
+section of ``can`` or ``legs``; ``register_protocol`` adds one (a test's, a builder's) at run time.
 """
 from typing import Any, Iterable, List, Optional, Tuple, Type
 
@@ -34,11 +34,6 @@ def protocol_class(name: str) -> Type[MotorProtocol]:
 def make_protocol(name: str, **params) -> MotorProtocol:
     """Build protocol ``name`` ('mit', 'dji_c620', 'lk', ...) with its constructor parameters."""
     return protocol_class(name)(**params)
-
-
-def protocol_from_config(name: str, section: Any) -> MotorProtocol:
-    """Build protocol ``name`` from its configuration section (the class's from_config)."""
-    return protocol_class(name).from_config(section)
 
 
 def protocol_for(name: str, owner: Any) -> MotorProtocol:
@@ -84,5 +79,5 @@ def register_protocol(cls: Type[MotorProtocol]) -> Type[MotorProtocol]:
 __all__ = ['check_motors', 'CybergearConfig', 'CybergearProtocol', 'DamiaoConfig',
            'DamiaoProtocol', 'DjiC620Protocol', 'Frame', 'impedance_protocols', 'LkConfig',
            'LkProtocol', 'make_protocol', 'MitCommand', 'MitProtocol', 'MotorFeedback',
-           'MotorProtocol', 'protocol_class', 'protocol_for', 'protocol_from_config',
-           'PROTOCOLS', 'register_protocol']
+           'MotorProtocol', 'protocol_class', 'protocol_for', 'PROTOCOLS',
+           'register_protocol']

@@ -191,24 +191,23 @@ class MotorProtocol(ABC):
         return feedback if feedback is not None and feedback.motor_id in motor_ids else None
 
 
-def extended_frame_bytes(frame: Frame) -> Optional[bytes]:
-    """Return an extended frame's data as bytes; None if standard or malformed (never raises)."""
+def frame_bytes(frame: Frame, extended: bool = False) -> Optional[bytes]:
+    """
+    Return the data of a classic CAN frame as bytes (never raises).
+
+    None unless the frame has the kind of ID asked for (standard; ``extended``: 29-bit) within
+    its range and at most 8 bytes of data (every codec here also checks its own lengths).
+    """
     try:
-        if not frame.is_extended_id or not 0 <= frame.arbitration_id <= MAX_EXTENDED_ID:
+        if bool(frame.is_extended_id) != extended or not 0 <= frame.arbitration_id <= (
+                MAX_EXTENDED_ID if extended else MAX_STANDARD_ID):
             return None
-        if isinstance(frame.data, int):
+        if isinstance(frame.data, int):  # bytes(n) would make n zero bytes
             return None
         data = bytes(frame.data)
         return data if len(data) <= 8 else None
     except (AttributeError, TypeError, ValueError):
         return None
-
-
-def frame_bytes(frame: Frame) -> Optional[bytes]:
-    """Return a standard frame's data as bytes; None if extended or malformed (never raises)."""
-    try:
-        if frame.is_extended_id or not 0 <= frame.arbitration_id <= MAX_STANDARD_ID:
-            return None
         if isinstance(frame.data, int):  # bytes(n) would make n zero bytes
             return None
         return bytes(frame.data)

@@ -29,7 +29,7 @@ import math
 import struct
 from typing import Dict, Iterable, List, Optional, Tuple
 
-from .base import extended_frame_bytes, Frame, MotorFeedback, MotorProtocol
+from .base import Frame, frame_bytes, MotorFeedback, MotorProtocol
 from .emulation import Command, EmulatedMotor, rotor_turn_position
 from ..schema import param
 
@@ -220,7 +220,7 @@ class CybergearProtocol(MotorProtocol):
 
     def decode_param_reply(self, frame: Frame) -> Optional[Tuple[int, int, float]]:
         """Decode a type 17 answer to the host: (motor ID, index, value); None otherwise."""
-        data = extended_frame_bytes(frame)
+        data = frame_bytes(frame, extended=True)
         if data is None or len(data) != 8:
             return None
         kind, field, target = split_id(frame.arbitration_id)
@@ -254,7 +254,7 @@ class CybergearProtocol(MotorProtocol):
         error: the fault bits 16-21 as bits 0-5 (FAULT_BITS; 0: none); enabled: mode = run;
         temperature [deg C].
         """
-        data = extended_frame_bytes(frame)
+        data = frame_bytes(frame, extended=True)
         if data is None or len(data) != 8:
             return None
         kind, field, target = split_id(frame.arbitration_id)
@@ -277,7 +277,7 @@ class CybergearProtocol(MotorProtocol):
 
         Replies (types 2, 17 and 21 to the host) and parameter reads are no commands.
         """
-        data = extended_frame_bytes(frame)
+        data = frame_bytes(frame, extended=True)
         if data is None or len(data) != 8:
             return ()
         kind, _, target = split_id(frame.arbitration_id)
@@ -333,7 +333,7 @@ class CybergearMotorEmulator(EmulatedMotor):
 
     def handle(self, frame: Frame, q: float, q_dot: float, now: float) -> Optional[Frame]:
         """Act on an extended frame to this motor as its firmware does; return the reply."""
-        data = extended_frame_bytes(frame)
+        data = frame_bytes(frame, extended=True)
         if data is None or len(data) != 8:
             return None
         p = self.protocol
