@@ -6,7 +6,7 @@ node declares its parameters with descriptors from it (nodes/params.load), confi
 checked against it by the tests, and the simulated robot and its motors are built from it. The
 prefixes give the ROS names of docs/simulation.md (``can.mit.t_max``, ``legs.motor_ids``,
 ``slope.angle``, ``fault.miswired_motor_id``). Every parameter is read-only: the scenario is set
-at start. The MIT ranges are balance_node's section (core/config.MitLimits), so both sides
+at start. The MIT ranges are balance_node's section (core/motor_config.MitLimits), so both sides
 build their codec the same way (``mit_protocol``); the firmware options beside them are the
 emulator's (sim/motor_emulator.py). No MuJoCo here: a configuration is checked without it.
 """
@@ -15,7 +15,7 @@ import math
 from typing import List
 
 from .layout import HIP_TORQUE_LIMIT, LEG_JOINTS, WHEEL_TORQUE_LIMIT
-from ..core.config import MitLimits
+from ..core.motor_config import MitLimits
 from ..core.protocols.emulation import TIMEOUT_ACTIONS
 from ..core.protocols.mit import MitProtocol
 from ..core.schema import param, section

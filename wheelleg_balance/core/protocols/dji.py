@@ -61,7 +61,7 @@ class DjiC620Protocol(MotorProtocol):
 
     @classmethod
     def from_config(cls, section) -> 'DjiC620Protocol':
-        """Build the codec from a core/config.py DjiConfig section."""
+        """Build the codec from a core/motor_config.py DjiConfig section."""
         if section is None:
             return cls()
         return cls(torque_constant=section.torque_constant, gear_ratio=section.gear_ratio,

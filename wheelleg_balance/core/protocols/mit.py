@@ -134,7 +134,7 @@ class MitProtocol(MotorProtocol):
 
     @classmethod
     def from_config(cls, section) -> 'MitProtocol':
-        """Build the codec from a core/config.py MitLimits section (its codec_ranges)."""
+        """Build the codec from a core/motor_config.py MitLimits section (its codec_ranges)."""
         return cls() if section is None else cls(**section.codec_ranges())
 
     @property
