@@ -30,6 +30,7 @@ from wheelleg_balance.bringup.session import BringUp, Operator, Refused
 from wheelleg_balance.core.attitude import quaternion_from_rpy, quaternion_multiply
 from wheelleg_balance.core.config import BalanceConfig
 from wheelleg_balance.core.protocols.base import Frame
+from wheelleg_balance.core.protocols.mit import MitProtocol
 from wheelleg_balance.core.schema import with_changes
 from wheelleg_balance.nodes.can_io import CanIo
 from wheelleg_balance.sim.motor_emulator import MitMotorBank
@@ -190,7 +191,7 @@ def test_a_hip_powered_up_a_rotor_turn_away_is_named():
 
 
 def test_unwrapping_across_the_reply_range():
-    u = mc.Unwrapper(12.5)
+    u = mc.Unwrapper(MitProtocol(p_min=-12.5, p_max=12.5))
     for p in (12.0, 12.4, -12.4, -12.0):   # forward through +12.5 = -12.5
         u.update(p)
     assert u.value == pytest.approx(13.0)
@@ -281,7 +282,7 @@ class Responder:
             for r in self.bank.handle(Frame(msg.arbitration_id, bytes(msg.data),
                                             msg.is_extended_id), time.monotonic()):
                 self.bus.send(can.Message(arbitration_id=r.arbitration_id, data=r.data,
-                                          is_extended_id=False))
+                                          is_extended_id=r.is_extended_id))
 
     def close(self):
         self.stop.set()
@@ -323,7 +324,7 @@ def test_a_motor_with_a_wrong_id_an_error_and_a_silent_one_are_named():
     assert by_item['left wheel (ID 1)'].level == PASS
     assert 'temperature 25 degC, error 0 (no error)' in by_item['left wheel (ID 1)'].text
     assert by_item['right wheel (ID 2)'].level == FAIL
-    assert 'error 1 (over-temperature)' in by_item['right wheel (ID 2)'].text
+    assert 'error 1 (motor over-temperature)' in by_item['right wheel (ID 2)'].text
     assert by_item['left front hip (ID 3)'].level == WARN
     right_front = by_item['right front hip (ID 5)']
     assert right_front.level == FAIL and 'ID 9 answers' in right_front.text
@@ -344,7 +345,7 @@ def test_nothing_answering_lists_the_wiring_causes():
     finally:
         io.close()
     text = session.report.checks[0].text
-    assert 'nothing answers' in text and 'termination' in text and 'MIT mode' in text
+    assert 'nothing answers' in text and 'termination' in text and 'protocol mit' in text
 
 
 def test_refuses_beside_a_balance_node_or_motor_traffic():

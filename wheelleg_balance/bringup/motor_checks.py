@@ -1,13 +1,16 @@
 """
 The motors' bring-up judgements (pure): who answers, which way they turn, where their zero is.
 
-``motor_slots`` lists the six MIT motors a BalanceConfig drives (two wheels, four hips) with
-the parameter that holds each one's direction. The rest judges what session.py recorded:
+``motor_slots`` lists the six motors a BalanceConfig drives (two wheels, four hips) with
+the parameter that holds each one's direction; ``motor_protocols`` the codecs they speak (the
+wheels' ``can.protocol``, the hips' ``legs.can.protocol``): every frame, reply, error reason
+and mode check comes from there. The rest judges what session.py recorded:
 
-- ``probe_check``: a motor's answer to enter / zero torque / exit (position, temperature and
-  error code), or, when it stayed silent, the likely cause from what else the bus showed (an
-  unconfigured ID that answers, the motor answering on the other bus, 29-bit frames of a motor
-  in servo mode, nothing at all);
+- ``probe_check``: a motor's answer to its mode query (the protocol's ``mode_problem``: a
+  DaMiao motor not in MIT mode, a CyberGear not in run_mode 0, with the fix), to enable / zero
+  torque / disable (position, temperature and the protocol's error reason), or, when it stayed
+  silent, the likely cause from what else the bus showed (an unconfigured ID that answers, the
+  motor answering on the other bus, frames no configured protocol reads, nothing at all);
 - ``wheel_check``: the builder turned a wheel forward by hand; the motor's unwrapped position
   change times its direction must be positive (a wheel's joint angle is direction times the
   motor's, core/motors.py), else the direction is wrong; if the motor did not move but the other
@@ -25,7 +28,8 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 from .report import Check, FAIL, INFO, PASS, WARN
 from ..core.config import BalanceConfig
-from ..core.protocols.base import MotorFeedback
+from ..core.protocols import protocol_for
+from ..core.protocols.base import MotorFeedback, MotorProtocol
 
 #: Smallest turn of a wheel [rad] and stretch of a hip [rad] that counts as moved by hand.
 MIN_WHEEL_TURN = 0.5
@@ -34,10 +38,6 @@ MIN_HIP_MOTION = 0.08
 OFFSET_TOLERANCE = math.radians(3.0)
 #: Temperatures [deg C] above which a motor at rest is suspicious.
 WARM = 50.0
-#: CubeMars AK error codes of the 8-byte reply (neurobionics/TMotorCANControl mit_can.py
-#: ERROR_CODES; sim/motor_emulator.py MitMotorEmulator.set_error).
-ERROR_NAMES = {0: 'no error', 1: 'over-temperature', 2: 'over-current', 3: 'over-voltage',
-               4: 'under-voltage', 5: 'encoder fault', 6: 'phase current unbalance'}
 #: A hip motor's rotor turn at the output of a 9:1 gear [rad] (the offsets' usual step).
 ROTOR_TURN_9_1 = 2.0 * math.pi / 9.0
 LEG_NAMES = ('left', 'right')
@@ -78,15 +78,19 @@ def channels(cfg: BalanceConfig) -> List[str]:
     return [cfg.can.channel]
 
 
+def motor_protocols(cfg: BalanceConfig) -> Tuple[MotorProtocol, MotorProtocol]:
+    """Return the codecs of (the wheels, the hips): can.protocol, legs.can.protocol."""
+    return (protocol_for(cfg.can.protocol, cfg.can),
+            protocol_for(cfg.legs.protocol, cfg.legs))
+
+
 def motor_slots(cfg: BalanceConfig) -> List[MotorSlot]:
-    """Return the MIT motors a configuration drives: the wheels (can.protocol mit), the hips."""
-    out = []
+    """Return the motors a configuration drives: the two wheels, the four hips if driven."""
     c = cfg.can
-    if c.protocol == 'mit':
-        out += [MotorSlot('left_wheel', 'left wheel', c.left_motor_id, 0, c.left_direction,
-                          'wheel', 0, 'can.left_motor_id', 'can.left_direction'),
-                MotorSlot('right_wheel', 'right wheel', c.right_motor_id, 0, c.right_direction,
-                          'wheel', 1, 'can.right_motor_id', 'can.right_direction')]
+    out = [MotorSlot('left_wheel', 'left wheel', c.left_motor_id, 0, c.left_direction,
+                     'wheel', 0, 'can.left_motor_id', 'can.left_direction'),
+           MotorSlot('right_wheel', 'right wheel', c.right_motor_id, 0, c.right_direction,
+                     'wheel', 1, 'can.right_motor_id', 'can.right_direction')]
     if cfg.legs.driven:
         bus = len(channels(cfg)) - 1
         for i, key in enumerate(('left_front', 'left_rear', 'right_front', 'right_rear')):
@@ -98,14 +102,15 @@ def motor_slots(cfg: BalanceConfig) -> List[MotorSlot]:
 
 class Unwrapper:
     """
-    A motor's position made continuous across the reply's wrap at +-p_max [rad].
+    A motor's position made continuous across its reply's wrap (the protocol's position_step).
 
-    The reply's 16-bit position wraps (bgkatz and CubeMars firmware); between two replies 10 ms
-    apart a motor turns far less than half the span, so the shortest step is the true one.
+    MIT's 16-bit position wraps at +-p_max, a C620's or an LK's single-turn encoder every
+    rotor turn; between two replies 10 ms apart a hand turns a motor far less than half that
+    span, so the protocol's shortest step is the true one.
     """
 
-    def __init__(self, p_max: float):
-        self.span = 2.0 * float(p_max)
+    def __init__(self, protocol: MotorProtocol):
+        self.protocol = protocol
         self.value: Optional[float] = None
         self._last: Optional[float] = None
 
@@ -114,7 +119,7 @@ class Unwrapper:
         if self._last is None:
             self.value = self._last = float(p)
             return self.value
-        step = (p - self._last + 0.5 * self.span) % self.span - 0.5 * self.span
+        step = self.protocol.position_step(self._last, p)
         self._last = float(p)
         self.value += step
         return self.value
@@ -122,37 +127,46 @@ class Unwrapper:
 
 # ---- finding the motors --------------------------------------------------------------------
 
-def feedback_text(fb: MotorFeedback) -> str:
-    """Return 'position 0.123 rad, 25 degC, no error' for a reply."""
+def feedback_text(fb: MotorFeedback, protocol: MotorProtocol) -> str:
+    """Return 'position 0.123 rad, temperature 25 degC, error 0 (no error)' for a reply."""
     parts = ['position %+.3f rad' % fb.position]
     parts.append('temperature %.0f degC' % fb.temperature if fb.temperature is not None
-                 else 'no temperature (6-byte replies)')
+                 else 'no temperature in its replies')
     if fb.error is not None:
-        parts.append('error %d (%s)' % (fb.error, ERROR_NAMES.get(fb.error, 'unknown code')))
+        reason = protocol.error_reason(fb.error) if fb.error else 'no error'
+        parts.append('error %d (%s)' % (fb.error, reason))
     return ', '.join(parts)
 
 
-def probe_check(slot: MotorSlot, replies: Sequence[MotorFeedback], channel: str,
-                strangers: Sequence[int] = (), elsewhere: Optional[str] = None,
-                extended_frames: int = 0, other_traffic: int = 0) -> Check:
+def probe_check(slot: MotorSlot, protocol: MotorProtocol, replies: Sequence[MotorFeedback],
+                channel: str, strangers: Sequence[int] = (), elsewhere: Optional[str] = None,
+                unread_frames: int = 0, mode_problem: Optional[str] = None) -> Check:
     """
-    Judge a motor's answers to enter, zero torque and exit (``replies``: those that came).
+    Judge a motor's answers to its mode query and to enable, zero torque, disable.
 
-    For a silent motor: strangers, IDs that answered on its bus though no motor is configured
-    with them; elsewhere, the channel where its ID answered instead; extended_frames, 29-bit
-    frames seen on its bus; other_traffic, frames on its bus that were not replies.
+    protocol: its motor set's codec; replies: the replies that came; mode_problem: what the
+    protocol's mode_problem said is wrong with its mode (and the fix), None when its mode is
+    right or unknown. For a silent motor: strangers, IDs that answered on its bus though no
+    motor is configured with them; elsewhere, the channel where its ID answered instead;
+    unread_frames, frames on its bus that no configured protocol reads (neither a reply nor
+    a command of theirs).
     """
     item = slot.label
+    if mode_problem is not None:
+        return Check(FAIL, item, 'answers on %s, but %s' % (channel, mode_problem),
+                     ['set the mode as said, then run bringup again (docs/robot_setup.md, '
+                      '"Motors: modes and IDs"); bring-up leaves a motor in a wrong mode '
+                      'disabled'])
     if replies:
         fb = replies[-1]
         if fb.error:
-            return Check(FAIL, item, 'answers, but reports %s' % feedback_text(fb),
+            return Check(FAIL, item, 'answers, but reports %s' % feedback_text(fb, protocol),
                          ['clear the fault (power-cycle the motor; for an over-temperature let '
                           'it cool) before arming'])
         if fb.temperature is not None and fb.temperature > WARM:
-            return Check(WARN, item, 'answers, warm at rest: %s' % feedback_text(fb))
-        return Check(PASS, item, 'answers on %s: %s (%d of 3 frames answered)'
-                     % (channel, feedback_text(fb), len(replies)))
+            return Check(WARN, item, 'answers, warm at rest: %s' % feedback_text(fb, protocol))
+        return Check(PASS, item, 'answers on %s (%s): %s (%d replies)'
+                     % (channel, protocol.name, feedback_text(fb, protocol), len(replies)))
     causes: List[str] = []
     fixes: List[str] = []
     if elsewhere is not None:
@@ -165,19 +179,21 @@ def probe_check(slot: MotorSlot, replies: Sequence[MotorFeedback], channel: str,
                       % ('s' if len(strangers) > 1 else '', ', '.join(map(str, strangers)),
                          '' if len(strangers) > 1 else 's', channel,
                          'them' if len(strangers) > 1 else 'it'))
-        fixes.append("set this motor's ID to %d (CubeMars tool, DaMiao ESC_ID, mini-cheetah "
-                     'menu `i`), or %s: %d if that motor is this one'
+        fixes.append("set this motor's ID to %d (docs/robot_setup.md, \"Motors: modes and "
+                     'IDs\"), or %s: %d if that motor is this one'
                      % (slot.motor_id, slot.id_param, strangers[0]))
-    if extended_frames:
-        causes.append('%d frames with 29-bit IDs on %s: a motor in servo mode (CubeMars servo '
-                      'mode speaks extended IDs) or not in MIT mode' % (extended_frames, channel))
-        fixes.append('switch the motor to MIT mode (docs/robot_setup.md, "Motors: modes and IDs")')
+    if unread_frames:
+        causes.append('%d frames on %s that the configured protocols do not read: a motor in '
+                      'another mode or speaking another protocol, or %s is not the protocol '
+                      'of this motor'
+                      % (unread_frames, channel, protocol.name))
+        fixes.append('set the motor to the mode protocol %s needs, or the protocol '
+                     '(docs/robot_setup.md, "Motors: modes and IDs")' % protocol.name)
     if not causes:
         causes.append('nothing answers: no power (is its LED on?), the CAN wires (CAN_H/CAN_L '
                       'swapped or open), the termination (60 ohm between CAN_H and CAN_L with '
-                      'the power off), not in MIT mode, or an ID outside the scanned range')
-        if other_traffic:
-            causes.append('%d other frames were seen on %s' % (other_traffic, channel))
+                      'the power off), not speaking protocol %s (its mode), or an ID outside '
+                      'the scanned range' % protocol.name)
     return Check(FAIL, item, 'does not answer on %s: %s' % (channel, '; '.join(causes)), fixes)
 
 

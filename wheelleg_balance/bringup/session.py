@@ -4,12 +4,17 @@ The bring-up procedure on the CAN buses (python-can through nodes/can_io.CanIo; 
 ``BringUp.run`` does, in order, and prints each finding as it comes (report.py):
 
 1. refuses to go on while something else drives the motors: a balance_node in the ROS graph
-   (``owners``, given by the caller) or command and reply frames of the configured motors on
-   a bus that bring-up has not spoken to yet (MIT motors speak only when spoken to);
+   (``owners``, given by the caller) or command frames to the configured motors on a bus that
+   bring-up has not spoken to yet (each motor set's protocol tells a command of its motors,
+   ``command_motor_ids``; replies alone are no sign: a C620 sends its feedback unasked);
 2. the CAN interfaces' settings (``links``, iplink.py, for SocketCAN);
-3. every configured motor: enter motor mode, one zero-torque command, exit (each answered by a
-   reply: position, temperature, error code); for a silent one, a scan of the other IDs with
-   exit frames (rest mode: harmless) and a look at the other bus, to name the likely cause;
+3. every configured motor, in its motor set's protocol (the wheels' ``can.protocol``, the
+   hips' ``legs.can.protocol``): its control mode where the protocol can ask
+   (``mode_query_frames`` / ``mode_problem``: a motor in a wrong mode is named with the fix and
+   never enabled), then enable, one zero-torque command, disable (the replies: position,
+   temperature, the protocol's error reason); for a silent one, a scan of the other IDs with
+   the protocol's disable frames (harmless) and a look at the other bus, to name the likely
+   cause;
 4. with the motors that answered in motor mode at zero torque (polled every 10 ms), the
    builder (``operator``) turns each wheel forward, folds each leg to its stop and stretches it
    off again: directions, crossed IDs and the hips' offsets (motor_checks.py);
@@ -25,8 +30,7 @@ from typing import Callable, Dict, List, Optional, Sequence, Tuple
 from . import imu_check, motor_checks as mc
 from .report import Check, FAIL, INFO, PASS, Report
 from ..core.config import BalanceConfig
-from ..core.protocols.base import Frame, MotorFeedback
-from ..core.protocols.mit import MitProtocol
+from ..core.protocols.base import Frame, MotorFeedback, MotorProtocol
 
 #: How long bring-up listens before it speaks [s], waits for one reply [s], polls [s].
 LISTEN = 0.5
@@ -69,23 +73,48 @@ class ConsoleOperator(Operator):
                           '--sim)') from None
 
 
-def _codec(limits) -> MitProtocol:
-    return MitProtocol(**limits.codec_ranges())
-
-
 class Motors:
-    """The configured motors on their buses: frames out, decoded replies in."""
+    """
+    The configured motors on their buses, each in its motor set's protocol.
+
+    ``codec[slot key]`` is the codec of a motor (the wheels' or the hips' one); a frame on a bus
+    is read with the codecs of that bus's motors, so wheels and hips of two protocols can share
+    a bus. Keys of ``_slots``: (bus, codec, motor ID).
+    """
 
     def __init__(self, cfg: BalanceConfig, ios: Sequence):
         self.ios = list(ios)
         self.slots = mc.motor_slots(cfg)
         self.channels = mc.channels(cfg)
-        wheel, hip = _codec(cfg.can.mit), _codec(cfg.legs.mit)
-        self.codec = {s.key: hip if s.kind == 'hip' else wheel for s in self.slots}
-        self.by_bus_id = {(s.bus, s.motor_id): s for s in self.slots}
-        self._default = [hip if any(s.bus == b and s.kind == 'hip' for s in self.slots)
-                         and not any(s.bus == b and s.kind == 'wheel' for s in self.slots)
-                         else wheel for b in range(len(self.ios))]
+        wheel, hip = mc.motor_protocols(cfg)
+        self.codec: Dict[str, MotorProtocol] = {
+            s.key: hip if s.kind == 'hip' else wheel for s in self.slots}
+        self._slots: Dict[tuple, mc.MotorSlot] = {
+            (s.bus, self.codec[s.key], s.motor_id): s for s in self.slots}
+
+    def codecs(self, bus: int) -> List[MotorProtocol]:
+        """Return the codecs of the motors (also those looked for) on a bus, wheels' first."""
+        out: List[MotorProtocol] = []
+        for b, codec, _ in self._slots:
+            if b == bus and codec not in out:
+                out.append(codec)
+        return out
+
+    def look_for(self, slot: mc.MotorSlot, bus: int) -> Optional[mc.MotorSlot]:
+        """Take a motor's replies on another bus for a while (``forget`` ends it)."""
+        key = (bus, self.codec[slot.key], slot.motor_id)
+        if key in self._slots:
+            return None
+        self._slots[key] = other = mc.MotorSlot(
+            slot.key, slot.name, slot.motor_id, bus, slot.direction, slot.kind, slot.index,
+            slot.id_param, slot.direction_param)
+        return other
+
+    def forget(self, slot: mc.MotorSlot) -> None:
+        """End look_for."""
+        key = (slot.bus, self.codec[slot.key], slot.motor_id)
+        if self._slots.get(key) is slot:
+            del self._slots[key]
 
     def send(self, bus: int, frames: Sequence[Frame]) -> Optional[str]:
         """Send frames on a bus; the error text or None."""
@@ -99,13 +128,55 @@ class Motors:
 
     def decode(self, bus: int, frame: Frame) -> Tuple[Optional[mc.MotorSlot],
                                                       Optional[MotorFeedback]]:
-        """Return (configured motor, its reply), (None, a stranger's reply) or (None, None)."""
-        data = bytes(frame.data)
-        if frame.is_extended_id or len(data) not in (6, 8):
-            return None, None
-        slot = self.by_bus_id.get((bus, data[0]))
-        codec = self.codec[slot.key] if slot is not None else self._default[bus]
-        return slot, codec.decode_feedback(frame)
+        """
+        Return (configured motor, its reply), (None, a stranger's reply) or (None, None).
+
+        A reply that one codec of the bus reads as a configured motor's is that motor's, even
+        if another codec reads it as a stranger's (MIT and DaMiao replies share ID 0).
+        """
+        stranger = None
+        for codec in self.codecs(bus):
+            fb = codec.decode_feedback(frame)
+            if fb is None:
+                continue
+            slot = self._slots.get((bus, codec, fb.motor_id))
+            if slot is not None:
+                return slot, fb
+            stranger = stranger or fb
+        return None, stranger
+
+    def mode_answer(self, bus: int, frame: Frame) -> Optional[Tuple[Optional[mc.MotorSlot],
+                                                                    Optional[str]]]:
+        """Return (the motor, what is wrong with its mode or None) for a mode answer, else None."""
+        for codec in self.codecs(bus):
+            answer = codec.mode_problem(frame)
+            if answer is not None:
+                return self._slots.get((bus, codec, answer[0])), answer[1]
+        return None
+
+    def commanded(self, bus: int, frame: Frame) -> Optional[mc.MotorSlot]:
+        """Return the configured motor a frame commands (another sender's), else None."""
+        for codec in self.codecs(bus):
+            for motor_id in codec.command_motor_ids(frame):
+                slot = self._slots.get((bus, codec, motor_id))
+                if slot is not None:
+                    return slot
+        return None
+
+    def read_by_none(self, bus: int, frame: Frame) -> bool:
+        """Tell whether no codec of the bus reads a frame: no reply, command or mode answer."""
+        return not any(c.decode_feedback(frame) is not None or c.command_motor_ids(frame)
+                       or c.mode_problem(frame) is not None for c in self.codecs(bus))
+
+    def frames_by_bus(self, slots: Sequence[mc.MotorSlot], kind: str) -> Dict[int, List[Frame]]:
+        """Return {bus: the frames of ``kind`` ('enable_frames', ...) for those of slots}."""
+        out: Dict[int, List[Frame]] = {}
+        for bus in sorted({s.bus for s in slots}):
+            for codec in self.codecs(bus):
+                ids = [s.motor_id for s in slots if s.bus == bus and self.codec[s.key] is codec]
+                if ids:
+                    out.setdefault(bus, []).extend(getattr(codec, kind)(ids))
+        return out
 
 
 class Poller:
@@ -116,7 +187,7 @@ class Poller:
         self.slots = list(slots)
         self._clock = clock
         self._lock = threading.Lock()
-        self._unwrap = {s.key: mc.Unwrapper(self.m.codec[s.key].p_max) for s in self.slots}
+        self._unwrap = {s.key: mc.Unwrapper(self.m.codec[s.key]) for s in self.slots}
         self.raw: Dict[str, float] = {}
         self.replies = 0
         self.errors: List[str] = []
@@ -134,10 +205,8 @@ class Poller:
         self._thread.join(timeout=2.0)
 
     def _run(self) -> None:
-        buses = sorted({s.bus for s in self.slots})
-        frames = {b: [f for s in self.slots if s.bus == b
-                      for f in self.m.codec[s.key].zero_torque_frames((s.motor_id,))]
-                  for b in buses}
+        frames = self.m.frames_by_bus(self.slots, 'zero_torque_frames')
+        buses = sorted(frames)
         next_t = self._clock()
         while not self._stop.is_set():
             for b in buses:
@@ -209,13 +278,8 @@ class BringUp:
             m.receive(b)   # what was queued before
         time.sleep(LISTEN)
         for b, channel in enumerate(m.channels):
-            ours = []
-            for frame in m.receive(b):
-                slot, fb = m.decode(b, frame)
-                if slot is not None and fb is not None:
-                    ours.append('a reply of %s' % slot.label)
-                elif not frame.is_extended_id and (b, frame.arbitration_id) in m.by_bus_id:
-                    ours.append('a command to %s' % m.by_bus_id[(b, frame.arbitration_id)].label)
+            commanded = [m.commanded(b, frame) for frame in m.receive(b)]
+            ours = ['a command to %s' % slot.label for slot in commanded if slot is not None]
             if ours:
                 raise Refused('%s carries motor traffic before bring-up said anything (%d '
                               'frames in %.1f s, e.g. %s): another controller, a balance_node '
@@ -226,69 +290,86 @@ class BringUp:
 
     # ---- 3. finding the motors -------------------------------------------------------------
 
-    def _exchange(self, bus: int, frames: Sequence[Frame], want: mc.MotorSlot, seen: dict
-                  ) -> List[MotorFeedback]:
+    def _exchange(self, bus: int, frames: Sequence[Frame], want: Optional[mc.MotorSlot],
+                  seen: dict) -> List[MotorFeedback]:
+        """Send frames one by one; return the replies of ``want`` that came to each."""
         got = []
         for frame in frames:
+            seen['sent'][bus].add(tuple(frame))   # an echo of it (LK's run, off) is no stranger
             self.motors.send(bus, [frame])
             end = time.monotonic() + REPLY_WAIT
             while time.monotonic() < end:
                 time.sleep(0.002)
                 for f in self.motors.receive(bus):
-                    self._note(bus, f, seen)
-                    slot, fb = self.motors.decode(bus, f)
+                    slot, fb = self._note(bus, f, seen)
                     if slot is want and fb is not None:
                         got.append(fb)
         return got
 
-    def _note(self, bus: int, frame: Frame, seen: dict) -> None:
-        slot, fb = self.motors.decode(bus, frame)
-        if frame.is_extended_id:
-            seen['extended'][bus] += 1
-        elif slot is None and fb is not None:
+    def _note(self, bus: int, frame: Frame, seen: dict
+              ) -> Tuple[Optional[mc.MotorSlot], Optional[MotorFeedback]]:
+        """Record what a frame says (a mode answer, a stranger, unread); return decode's."""
+        m = self.motors
+        mode = m.mode_answer(bus, frame)   # first: a DaMiao register answer looks like a reply
+        if mode is not None:
+            if mode[0] is not None:
+                seen['modes'][mode[0].key] = mode[1]
+            return None, None
+        slot, fb = m.decode(bus, frame)
+        if slot is None and fb is not None:
             seen['strangers'][bus].add(fb.motor_id)
-        elif slot is None and (bus, frame.arbitration_id) not in self.motors.by_bus_id:
-            seen['other'][bus] += 1
+        elif fb is None and tuple(frame) not in seen['sent'][bus] \
+                and m.read_by_none(bus, frame):
+            seen['unread'][bus] += 1
+        return slot, fb
 
     def find_motors(self) -> None:
-        """Probe every configured motor; name the likely cause for those that stay silent."""
+        """Check every configured motor's mode, probe it; name the likely cause of a silence."""
         m = self.motors
         n = len(m.ios)
-        seen = {'extended': [0] * n, 'strangers': [set() for _ in range(n)], 'other': [0] * n}
-        replies = {}
+        seen = {'unread': [0] * n, 'strangers': [set() for _ in range(n)], 'modes': {},
+                'sent': [set() for _ in range(n)]}
+        # The modes first, every motor still as powered up (a DaMiao answers register reads
+        # only while disabled); a motor in a wrong mode is never enabled.
+        for s in m.slots:
+            self._exchange(s.bus, m.codec[s.key].mode_query_frames((s.motor_id,)), None, seen)
+        modes = seen['modes']
+        replies: Dict[str, List[MotorFeedback]] = {}
         for s in m.slots:
             codec = m.codec[s.key]
+            ids = (s.motor_id,)
+            if modes.get(s.key) is not None:
+                replies[s.key] = []
+                continue
             self._entered.append(s)
             replies[s.key] = self._exchange(
-                s.bus, codec.enable_frames((s.motor_id,)) + codec.disable_frames((s.motor_id,)),
-                s, seen)
-        missing = [s for s in m.slots if not replies[s.key]]
+                s.bus, codec.enable_frames(ids) + codec.disable_frames(ids), s, seen)
+        missing = [s for s in m.slots if not replies[s.key] and modes.get(s.key) is None]
         elsewhere: Dict[str, str] = {}
         if missing:
             for b in range(n):
-                configured = {s.motor_id for s in m.slots if s.bus == b}
-                codec = m._default[b]
-                for i in self.scan_ids:
-                    if i not in configured:
-                        self._exchange(b, codec.disable_frames((i,))[-1:], None, seen)
+                for codec in m.codecs(b):
+                    configured = {s.motor_id for s in m.slots
+                                  if s.bus == b and m.codec[s.key] is codec}
+                    for i in self.scan_ids:
+                        if i not in configured:
+                            self._exchange(b, codec.disable_frames((i,)), None, seen)
             for s in missing:
                 for b in range(n):
-                    if b != s.bus:
-                        other = mc.MotorSlot(s.key, s.name, s.motor_id, b, s.direction, s.kind,
-                                             s.index, s.id_param, s.direction_param)
-                        m.by_bus_id.setdefault((b, s.motor_id), other)
-                        if self._exchange(b, m.codec[s.key].disable_frames((s.motor_id,))[-1:],
-                                          other, seen):
-                            elsewhere[s.key] = m.channels[b]
-                        if m.by_bus_id.get((b, s.motor_id)) is other:
-                            del m.by_bus_id[(b, s.motor_id)]
+                    other = m.look_for(s, b) if b != s.bus else None
+                    if other is None:
+                        continue
+                    if self._exchange(b, m.codec[s.key].disable_frames((s.motor_id,)), other,
+                                      seen):
+                        elsewhere[s.key] = m.channels[b]
+                    m.forget(other)
         for s in m.slots:
             ours = {o.motor_id for o in m.slots if o.bus == s.bus}
             strangers = sorted(seen['strangers'][s.bus] - ours)
-            self.report.add(mc.probe_check(s, replies[s.key], m.channels[s.bus], strangers,
-                                           elsewhere.get(s.key), seen['extended'][s.bus],
-                                           seen['other'][s.bus]))
-        self.found = [s for s in m.slots if replies[s.key]]
+            self.report.add(mc.probe_check(s, m.codec[s.key], replies[s.key], m.channels[s.bus],
+                                           strangers, elsewhere.get(s.key),
+                                           seen['unread'][s.bus], modes.get(s.key)))
+        self.found = [s for s in m.slots if replies[s.key] and modes.get(s.key) is None]
 
     # ---- 4. by hand ------------------------------------------------------------------------
 
@@ -306,10 +387,8 @@ class BringUp:
         if not found:
             return
         m = self.motors
-        for b in sorted({s.bus for s in found}):
-            codec_frames = [f for s in found if s.bus == b
-                            for f in m.codec[s.key].enable_frames((s.motor_id,))]
-            m.send(b, codec_frames)
+        for b, frames in m.frames_by_bus(found, 'enable_frames').items():
+            m.send(b, frames)
         poller = Poller(m, found).start()
         try:
             for s in [s for s in found if s.kind == 'wheel']:
@@ -371,7 +450,7 @@ class BringUp:
         R.extend(self.links() or [Check(INFO, ', '.join(self.motors.channels),
                                         'not SocketCAN (%s): no ip link settings to check'
                                         % self.cfg.can.interface)])
-        R.say('== 3. Motors (enter motor mode, zero torque, exit)')
+        R.say('== 3. Motors (control mode, enable, zero torque, disable)')
         try:
             self.find_motors()
             R.say('== 4. Directions and zero offsets, by hand (motors at zero torque)')

@@ -41,6 +41,7 @@ def balance_config(sim: SimConfig) -> BalanceConfig:
     c, legs = sim.can, sim.legs
     return with_changes(BalanceConfig(), {
         'can.interface': c.interface, 'can.channel': c.channel, 'can.udp_port': c.udp_port,
+        'can.protocol': c.protocol,
         'can.left_motor_id': c.left_motor_id, 'can.right_motor_id': c.right_motor_id,
         'can.left_direction': c.left_direction, 'can.right_direction': c.right_direction,
         'legs.driven': True, 'legs.motor_ids': list(legs.motor_ids),

@@ -1,0 +1,323 @@
+"""
+bringup on every motor protocol (issue 31): the motor set's protocol says every frame and reply.
+
+session.BringUp runs on python-can's virtual bus against each protocol's emulated firmware in
+a thread (core/protocols' ``make_emulator`` for LK, CyberGear and DaMiao; sim/motor_emulator's
+MitMotorBank and DjiC620Emulator for MIT and the C620): wheels and hips of two protocols on one
+bus are found and checked, a DaMiao or CyberGear motor in the wrong control mode is named with
+the fix and never enabled, a motor's fault is told in its protocol's words, and a protocol
+defined in this module (registered with ``register_protocol``, no package file changed) runs
+through the motor checks, the check by hand included.
+"""
+import dataclasses
+import math
+import os
+import struct
+import threading
+import time
+
+import can
+import pytest
+
+from wheelleg_balance.bringup.report import FAIL, PASS, Report
+from wheelleg_balance.bringup.session import BringUp, Operator
+from wheelleg_balance.core.config import BalanceConfig
+from wheelleg_balance.core.protocols import make_protocol, PROTOCOLS, register_protocol
+from wheelleg_balance.core.protocols.base import Frame, MotorFeedback, MotorProtocol
+from wheelleg_balance.core.protocols.emulation import EmulatedMotor, EmulatedMotors, \
+    torque_only
+from wheelleg_balance.core.schema import with_changes
+from wheelleg_balance.nodes.can_io import CanIo
+from wheelleg_balance.sim.motor_emulator import DjiC620Emulator, MitMotorBank
+
+WHEELS = (1, 2)
+HIPS = (3, 4, 5, 6)
+LABELS = ['left wheel (ID 1)', 'right wheel (ID 2)', 'left front hip (ID 3)',
+          'left rear hip (ID 4)', 'right front hip (ID 5)', 'right rear hip (ID 6)']
+
+
+class Responder:
+    """Emulated motors of any protocols ("banks") answering on a virtual bus, in a thread."""
+
+    def __init__(self, channel, banks):
+        self.bus = can.Bus(interface='virtual', channel=channel)
+        self.banks = list(banks)
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self):
+        while not self.stop.is_set():
+            msg = self.bus.recv(timeout=0.01)
+            if msg is None:
+                continue
+            frame = Frame(msg.arbitration_id, bytes(msg.data), msg.is_extended_id)
+            for bank in self.banks:
+                for r in bank.handle(frame, time.monotonic()):
+                    self.bus.send(can.Message(arbitration_id=r.arbitration_id, data=r.data,
+                                              is_extended_id=r.is_extended_id))
+
+    def close(self):
+        self.stop.set()
+        self.thread.join()
+        self.bus.shutdown()
+
+
+class NoHands(Operator):
+    def ask(self, step, slots, text):
+        raise AssertionError('no step by hand expected')
+
+
+def bank(name, ids, cfg_section):
+    """Return emulated motors of protocol ``name`` with the configuration's codec."""
+    if name == 'mit':
+        return MitMotorBank(ids, reply_temperature=True)
+    if name == 'dji_c620':
+        return DjiC620Emulator(ids)
+    from wheelleg_balance.core.protocols import protocol_for
+    return EmulatedMotors(protocol_for(name, cfg_section), ids)
+
+
+def config(channel, wheels, hips=None):
+    """Return a configuration with wheels (and hips, if given) of those protocols on a bus."""
+    changes = {'can.interface': 'virtual', 'can.channel': channel, 'can.protocol': wheels,
+               'wheel_state_source': 'joint_states', 'max_wheel_torque': 4.0}
+    if hips is not None:
+        changes.update({'legs.driven': True, 'legs.can.protocol': hips})
+    return with_changes(BalanceConfig(), changes)
+
+
+def run_find(cfg, banks, operator=None, by_hand=False):
+    """Run find_motors (and by_hand) against ``banks``; return the session, the probes by item."""
+    channel = cfg.can.channel
+    motors = Responder(channel, banks)
+    io = CanIo(can.Bus(interface='virtual', channel=channel), send_timeout=0.01)
+    lines = []
+    session = BringUp(cfg, [io], operator or NoHands(), lambda t: [], Report(lines.append),
+                      scan_ids=range(1, 9), settle=0.1)
+    try:
+        session.find_motors()
+        if by_hand:
+            session.by_hand()
+        session.exit_all()
+        time.sleep(0.1)   # the responder answers in its own thread
+    finally:
+        io.close()
+        motors.close()
+    probes = {}
+    for c in session.report.checks:   # each motor's first check: its probe
+        probes.setdefault(c.item, c)
+    return session, probes
+
+
+def emulators(banks):
+    out = {}
+    for b in banks:
+        out.update(getattr(b, 'emulators', {}))
+    return out
+
+
+@pytest.mark.parametrize('wheels', ['lk', 'cybergear', 'damiao', 'dji_c620', 'mit'])
+def test_wheels_of_each_protocol_are_found_and_checked(wheels):
+    cfg = config('bringup_wheels_%s_%d' % (wheels, os.getpid()), wheels)
+    banks = [bank(wheels, WHEELS, cfg.can)]
+    session, checks = run_find(cfg, banks)
+    for item in LABELS[:2]:
+        assert checks[item].level == PASS, checks[item]
+        assert '(%s)' % wheels in checks[item].text and 'temperature 25 degC' in \
+            checks[item].text
+    assert [s.key for s in session.found] == ['left_wheel', 'right_wheel']
+    # Enabled, answered, disabled again: no motor left in its torque mode.
+    assert not any(e.enabled for e in emulators(banks).values())
+
+
+@pytest.mark.parametrize('wheels, hips', [('lk', 'damiao'), ('dji_c620', 'cybergear'),
+                                          ('cybergear', 'damiao'), ('damiao', 'cybergear'),
+                                          ('mit', 'damiao')])
+def test_wheels_and_hips_of_two_protocols_on_one_bus(wheels, hips):
+    cfg = config('bringup_mixed_%s_%s_%d' % (wheels, hips, os.getpid()), wheels, hips)
+    banks = [bank(wheels, WHEELS, cfg.can), bank(hips, HIPS, cfg.legs)]
+    session, checks = run_find(cfg, banks)
+    assert [checks[item].level for item in LABELS] == [PASS] * 6, \
+        [checks[i].text for i in LABELS]
+    assert all('(%s)' % hips in checks[item].text for item in LABELS[2:])
+    assert len(session.found) == 6
+    assert not any(e.enabled for e in emulators(banks).values())
+
+
+@pytest.mark.parametrize('hips, wrong, words', [
+    ('damiao', {'control_mode': 2}, 'position-velocity mode (CTRL_MODE = 2), not MIT: write '
+     'register 10 = 1'),
+    ('cybergear', {'run_mode': 2}, 'speed mode (run_mode = 2), not operation control: stop '
+     'it (type 4) and write run_mode 0')])
+def test_a_hip_in_the_wrong_mode_is_named_with_the_fix_and_never_enabled(hips, wrong, words):
+    cfg = config('bringup_mode_%s_%d' % (hips, os.getpid()), 'lk', hips)
+    legs = bank(hips, HIPS, cfg.legs)
+    wrong_one = legs.motor(5)
+    for key, value in wrong.items():
+        setattr(wrong_one, key, value)
+    enables = []
+    set_enabled = wrong_one.set_enabled
+    wrong_one.set_enabled = lambda on, now: (enables.append(on), set_enabled(on, now))
+    banks = [bank('lk', WHEELS, cfg.can), legs]
+    session, checks = run_find(cfg, banks)
+    right_front = checks['right front hip (ID 5)']
+    assert right_front.level == FAIL and words in right_front.text, right_front.text
+    assert [checks[item].level for item in LABELS if item != right_front.item] == [PASS] * 5
+    assert 'right_front' not in [s.key for s in session.found]
+    # Asked for its mode only: never enabled, never commanded.
+    assert True not in enables and wrong_one.command is None and not wrong_one.enabled
+    assert legs.motor(3).frames > 1
+
+
+@pytest.mark.parametrize('wheels, code, words', [
+    ('cybergear', 0b000100, 'error 4 (over-temperature)'),
+    ('damiao', 0xA, 'error 10 (over-current)'), ('mit', 2, 'error 2 (over-current)')])
+def test_a_motor_fault_is_told_in_its_protocols_words(wheels, code, words):
+    # (LK's torque reply carries no error bits: its state-1 read, 0x9A, has them.)
+    cfg = config('bringup_fault_%s_%d' % (wheels, os.getpid()), wheels)
+    motors = bank(wheels, WHEELS, cfg.can)
+    motors.motor(2).set_error(code)
+    _, checks = run_find(cfg, [motors])
+    right = checks['right wheel (ID 2)']
+    assert right.level == FAIL and words in right.text, right.text
+    assert checks['left wheel (ID 1)'].level == PASS
+
+
+def test_a_silent_motor_and_a_wrong_id_on_a_cybergear_bus():
+    cfg = config('bringup_scan_%d' % os.getpid(), 'cybergear')
+    motors = bank('cybergear', (1, 7), cfg.can)   # the right wheel answers as ID 7
+    _, checks = run_find(cfg, [motors])
+    right = checks['right wheel (ID 2)']
+    assert right.level == FAIL and 'ID 7 answers' in right.text
+    assert right.fix[-1].endswith('can.right_motor_id: 7 if that motor is this one')
+
+
+# ---- a protocol defined here ---------------------------------------------------------------
+
+class _HereProtocol(MotorProtocol):
+    """
+    A protocol the package does not know: torque in mN m, a 4-byte reply, a mode register.
+
+    To motor i on 0x600 + i: 1 byte enable (1) / disable (0), 2 bytes int16 torque [mN m];
+    0x700 + i, no data: read the mode. Replies on 0x680 + i: int16 position [mrad], int8
+    temperature [deg C], uint8 error; mode answers on 0x780 + i: one byte (0: torque mode).
+    """
+
+    name = 'bringup_test_here'
+
+    def enable_frames(self, motor_ids):
+        return [Frame(0x600 + i, b'\x01') for i in motor_ids]
+
+    def disable_frames(self, motor_ids):
+        return self.zero_torque_frames(motor_ids) + [Frame(0x600 + i, b'\x00')
+                                                     for i in motor_ids]
+
+    def torque_frames(self, torques):
+        return [Frame(0x600 + i, struct.pack('<h', round(1e3 * max(-30.0, min(30.0, t)))
+                                             if math.isfinite(t) else 0))
+                for i, t in torques.items()]
+
+    def zero_torque_frames(self, motor_ids):
+        return self.torque_frames(dict.fromkeys(motor_ids, 0.0))
+
+    def decode_feedback(self, frame):
+        if not 0x680 < frame.arbitration_id < 0x6FF or len(frame.data) != 4 \
+                or frame.is_extended_id:
+            return None
+        position, temperature, error = struct.unpack('<hbB', frame.data)
+        return MotorFeedback(frame.arbitration_id - 0x680, position / 1e3, 0.0, 0.0,
+                             float(temperature), error)
+
+    def command_motor_ids(self, frame):
+        return (frame.arbitration_id - 0x600,) if 0x600 < frame.arbitration_id < 0x67F else ()
+
+    def error_reason(self, code):
+        return {1: 'the test motor is too hot'}.get(code, 'test code %d' % code)
+
+    def mode_query_frames(self, motor_ids):
+        return [Frame(0x700 + i, b'') for i in motor_ids]
+
+    def mode_problem(self, frame):
+        if not 0x780 < frame.arbitration_id < 0x7FF or len(frame.data) != 1:
+            return None
+        mode = frame.data[0]
+        return frame.arbitration_id - 0x780, None if mode == 0 else (
+            'in test mode %d: write 0 to its mode' % mode)
+
+    def make_emulator(self, motor_id, **options):
+        return _HereMotor(motor_id, 30.0, **options)
+
+
+class _HereMotor(EmulatedMotor):
+    """_HereProtocol's motor: answers every frame on its IDs; ``mode`` its mode register."""
+
+    mode = 0
+
+    def handle(self, frame, q, q_dot, now):
+        if frame.arbitration_id == 0x700 + self.motor_id:
+            return Frame(0x780 + self.motor_id, bytes((self.mode,)))
+        if frame.arbitration_id != 0x600 + self.motor_id:
+            return None
+        self.frames += 1
+        if len(frame.data) == 1:
+            self.set_enabled(frame.data[0] == 1, now)
+        elif len(frame.data) == 2:
+            self.set_command(torque_only(struct.unpack('<h', frame.data)[0] / 1e3), now)
+        self.torque(q, q_dot, now)
+        position = max(-32.0, min(32.0, self.position(q)))
+        return Frame(0x680 + self.own_reply_id, struct.pack(
+            '<hbB', round(1e3 * position), round(self.temperature), self.error))
+
+
+class TurnWheels(Operator):
+    """The builder's hands on emulated joints: each wheel turned forward by 1 rad."""
+
+    def __init__(self, motors):
+        self.motors = motors
+
+    def ask(self, step, slots, text):
+        assert step == 'wheel_forward'
+        for s in slots:
+            q, _ = self.motors.joints[s.motor_id]
+            self.motors.joints[s.motor_id] = (q + 1.0, 0.0)
+
+
+@pytest.fixture
+def here_config(monkeypatch):
+    """Return a configuration whose wheels speak _HereProtocol (registered for the test)."""
+    monkeypatch.setitem(PROTOCOLS, _HereProtocol.name, None)   # removed again afterwards
+    register_protocol(_HereProtocol)
+    cfg = config('bringup_here_%d' % os.getpid(), 'mit')
+    # The configuration's choices were fixed at import: the test's protocol goes in directly.
+    return dataclasses.replace(cfg, can=dataclasses.replace(cfg.can,
+                                                            protocol=_HereProtocol.name))
+
+
+def test_a_protocol_defined_here_runs_through_the_motor_checks(here_config):
+    motors = EmulatedMotors(make_protocol(_HereProtocol.name), WHEELS,
+                            {1: here_config.can.left_direction,
+                             2: here_config.can.right_direction})
+    motors.motor(2).miswired = True    # turns the other way than configured
+    motors.motor(2).set_temperature(61.0)
+    session, checks = run_find(here_config, [motors], TurnWheels(motors), by_hand=True)
+    left = checks['left wheel (ID 1)']
+    assert left.level == PASS and '(bringup_test_here)' in left.text
+    assert 'temperature 25 degC, error 0 (no error)' in left.text
+    assert 'warm at rest' in checks['right wheel (ID 2)'].text
+    turned = [c for c in session.report.checks if 'turned forward' in c.text]
+    assert [c.level for c in turned] == [PASS, FAIL]
+    assert session.changes == {'can.right_direction': 1}
+    assert not any(e.enabled for e in motors.emulators.values())
+
+
+def test_a_protocol_defined_here_names_its_mode_and_its_fault(here_config):
+    motors = EmulatedMotors(make_protocol(_HereProtocol.name), WHEELS)
+    motors.motor(1).mode = 3
+    motors.motor(2).set_error(1)
+    session, checks = run_find(here_config, [motors])
+    assert 'in test mode 3: write 0 to its mode' in checks['left wheel (ID 1)'].text
+    assert motors.motor(1).frames == 0   # only asked for its mode
+    right = checks['right wheel (ID 2)']
+    assert right.level == FAIL and 'error 1 (the test motor is too hot)' in right.text
+    assert [s.key for s in session.found] == ['right_wheel']
