@@ -3,9 +3,10 @@ The control tick on a bench: ``BalanceLoop`` driven tick by tick on a virtual cl
 
 What balance_node does each tick, without ROS or a bus: ROS messages go through the node's own
 reductions (nodes/sensor_intake.imu_sample, core/sensors.JointStateReader) into the tick's
-inputs; the frames the tick sends reach the wheel motors (sim/motor_emulator.MitMotorBank,
-the firmware emulated), whose replies arrive before the next tick (or are lost), and are
-decoded for the caller as the firmware decodes them; a send can be made to fail. Parameter
+inputs; the frames the tick sends reach the wheel motors (the firmware emulated: the
+configured protocol's own emulator, ``wheel_motors``), whose replies arrive before the next
+tick (or are lost), and are decoded for the caller as the firmware decodes them (the
+protocol's ``decode_command``); a send can be made to fail. Parameter
 changes go through the node's own ParameterGuard checks. The clock moves one control period
 per tick, so runs are deterministic and much faster than real time (fuzzing: tens of
 microseconds per tick).
@@ -21,13 +22,15 @@ from sensor_msgs.msg import Imu, JointState
 from ...core.balance_loop import BalanceLoop, CmdVel, joint_state_reader, STATE_FIELDS, \
     TickInputs
 from ...core.config import BalanceConfig
-from ...core.protocols.base import Frame
+from ...core.protocols.base import Frame, MotorProtocol
+from ...core.protocols.emulation import EmulatedMotors
 from ...core.protocols.mit import MitCommand, MitProtocol
 from ...core.schema import check, from_flat, with_changes
 from ...nodes.params import load, ParameterGuard
 from ...nodes.sensor_intake import imu_sample
 from ...sim.motor_emulator import MitMotorBank
 
+#: The default configuration's wheel codec (the MIT rig's scenarios: validation/faults/rig.py).
 MIT = MitProtocol()
 #: One code step of the 12-bit MIT torque over +-18 N m [N m].
 TORQUE_LSB = (MIT.t_max - MIT.t_min) / 4095
@@ -70,15 +73,34 @@ def make_joints(w_left: float = 0.0, w_right: float = 0.0, legs=None) -> JointSt
                       effort=[0.0] * len(names))
 
 
-def wheel_motors(loop: BalanceLoop) -> MitMotorBank:
-    """Return emulators of a loop's wheel motors: its IDs, directions and MIT ranges."""
-    return MitMotorBank(loop.motors.ids, {m.motor_id: m.direction for m in loop.motors.motors},
-                        loop.protocol)
+def wheel_motors(loop: BalanceLoop):
+    """
+    Return emulators of a loop's wheel motors: its protocol's (make_emulator), IDs, directions.
+
+    A protocol without an emulator of its own yet (MIT: the simulator's work of issue 31 gives
+    it one) gets sim/motor_emulator.py's MIT motors with the loop's ranges.
+    """
+    directions = {m.motor_id: m.direction for m in loop.motors.motors}
+    try:
+        return EmulatedMotors(loop.protocol, loop.motors.ids, directions)
+    except NotImplementedError:
+        return MitMotorBank(loop.motors.ids, directions, loop.protocol)
 
 
 def decode(arbitration_id: int, data: bytes):
-    """Decode a frame as the motor firmware does: 'enter' / 'exit' / 'zero', a command or None."""
+    """Decode a frame as MIT firmware does: 'enter' / 'exit' / 'zero', a command or None."""
     return MIT.decode_command(Frame(arbitration_id, bytes(data)))
+
+
+def decode_frame(frame: Frame, protocol: MotorProtocol):
+    """
+    Decode a frame as ``protocol``'s motors do, or return it as it is.
+
+    The protocol's decode_command (MIT's words above, LK's iq code or 'off', ...); a protocol
+    with no decode_command gives the frame itself.
+    """
+    motor_side = getattr(protocol, 'decode_command', None)
+    return frame if motor_side is None else motor_side(frame)
 
 
 def is_zero_torque(cmd) -> bool:
@@ -201,7 +223,8 @@ class LoopBench:
         self.sent = [] if self.fail_with is not None else list(result.frames)
         self._replies = [r for f in self.sent for r in self.motors.handle(f, self.t)]
         self.after_tick(result)
-        return [(f.arbitration_id, decode(f.arbitration_id, f.data)) for f in self.sent]
+        protocol = self.loop.protocol
+        return [(f.arbitration_id, decode_frame(f, protocol)) for f in self.sent]
 
     def after_tick(self, result) -> None:
         """Report the tick's send to the loop and answer a pending arm request with its reply."""

@@ -6,7 +6,9 @@ balance_node as it runs on the robot, driven from outside over DDS and CAN: the 
 executor, real DDS on localhost, and ``FakeRobot``, a ROS node publishing ``imu`` /
 ``joint_states`` / ``cmd_vel`` from a plant (validation/faults/plants.py) driven by the torques
 the fake motors receive. Every fault is injected at the outside of the node (messages, CAN
-frames, services, signals), and every reaction is read off the bus, decoded with MitProtocol.
+frames, services, signals), and every reaction is read off the bus, decoded as the fake
+motors' firmware decodes it: MIT, the default configuration's protocol (FakeMotors; the other
+protocols' motor faults run at the tick level, test/test_protocols_on_the_tick.py).
 
 Times are wall-clock seconds (``time.time``), the clock python-can stamps frames with.
 """
