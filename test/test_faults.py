@@ -4,10 +4,11 @@ balance_node under faults and bad input: each fault, its reaction, the time to z
 The scenarios live in wheelleg_balance/validation/faults/ (the ``fault_report`` command runs
 the same ones); docs/faults.md has the table of reactions and measured times. Most run the node
 as on the robot: its 2 ms control loop, real DDS on localhost (own domain), a python-can
-``virtual`` bus with two fake MIT motors; torques are read off the bus and decoded with
-MitProtocol. The SIGINT/SIGTERM tests run the node as a process on ``udp_multicast``; the push
-test runs against sim_node (MuJoCo) in this process; the field matrices, the controller switch
-and the latch test drive the control tick itself (core/balance_loop.py) on a virtual clock.
+``virtual`` bus with two fake wheel motors (MIT, or the configured protocol's emulator);
+torques are read off the bus as the motors' firmware acts on them. The SIGINT/SIGTERM tests
+run the node as a process on ``udp_multicast``; the push test runs against sim_node (MuJoCo)
+in this process; the field matrices, the controller switch and the latch test drive the
+control tick itself (core/balance_loop.py) on a virtual clock.
 
 Each test fails with the list of the scenario's checks that did not hold.
 """
@@ -26,6 +27,7 @@ from wheelleg_balance.validation.faults.matrices import FieldMatrix, MATRICES
 from wheelleg_balance.validation.faults.outcome import Outcome
 from wheelleg_balance.validation.faults.rig import (REACTION_TIME_CHECK, SITTING_TIME_CHECK,
                                                     Spinning, unique_namespace)
+from wheelleg_balance.validation.faults.scenarios import PROTOCOL_FAULTS
 from wheelleg_balance.validation.faults.suite import run_measured
 
 pytestmark = pytest.mark.ros
@@ -248,6 +250,16 @@ test_error_frame_storm_does_not_stop_balancing = scenario_test('error_frame_stor
 test_motor_error_code_faults_with_the_reason = scenario_test('motor_error')
 test_rebooted_motor_faults = scenario_test('motor_rebooted')
 test_over_temperature_sits_down_and_refuses_to_arm = scenario_test('motor_over_temperature')
+
+
+@pytest.mark.parametrize('name', ['%s_%s' % (fault, wheels)
+                                  for wheels, faults in PROTOCOL_FAULTS.items()
+                                  for fault in faults])
+def test_motor_faults_on_the_other_wheel_protocols(context, record_testsuite_property,
+                                                   fault_retries, name):
+    """The motor faults with LK, CyberGear and DaMiao wheels: the fake motors speak them."""
+    run_scenario(name, context, record_testsuite_property, fault_retries)
+
 
 # ------------------------------------------------- at the robot's own timeouts (50 ms)
 

@@ -73,18 +73,23 @@ def make_joints(w_left: float = 0.0, w_right: float = 0.0, legs=None) -> JointSt
                       effort=[0.0] * len(names))
 
 
-def wheel_motors(loop: BalanceLoop):
+def emulated_motors(protocol: MotorProtocol, ids, directions):
     """
-    Return emulators of a loop's wheel motors: its protocol's (make_emulator), IDs, directions.
+    Return emulated motors of ``protocol`` (its make_emulator) with these IDs and directions.
 
     A protocol without an emulator of its own yet (MIT: the simulator's work of issue 31 gives
-    it one) gets sim/motor_emulator.py's MIT motors with the loop's ranges.
+    it one) gets sim/motor_emulator.py's MIT motors with the protocol's ranges.
     """
-    directions = {m.motor_id: m.direction for m in loop.motors.motors}
     try:
-        return EmulatedMotors(loop.protocol, loop.motors.ids, directions)
+        return EmulatedMotors(protocol, ids, directions)
     except NotImplementedError:
-        return MitMotorBank(loop.motors.ids, directions, loop.protocol)
+        return MitMotorBank(ids, directions, protocol)
+
+
+def wheel_motors(loop: BalanceLoop):
+    """Return emulators of a loop's wheel motors: its protocol's, IDs and directions."""
+    return emulated_motors(loop.protocol, loop.motors.ids,
+                           {m.motor_id: m.direction for m in loop.motors.motors})
 
 
 def decode(arbitration_id: int, data: bytes):

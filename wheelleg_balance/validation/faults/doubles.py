@@ -11,11 +11,10 @@ from typing import Dict, List, Optional, Tuple
 import can
 from can.interfaces.virtual import VirtualBus
 
-from .bench import decode, MIT, TORQUE_LSB
+from .bench import emulated_motors, MIT, TORQUE_LSB
 from ...core.config import DEFAULTS
-from ...core.protocols.base import Frame
-from ...core.protocols.mit import MitCommand
-from ...sim.motor_emulator import MitMotorBank, MitMotorEmulator
+from ...core.protocols.base import Frame, MotorProtocol
+from ...core.protocols.emulation import EmulatedMotor
 
 #: The wheel motors' IDs and directions of the default configuration.
 MOTOR_IDS = (DEFAULTS.can.left_motor_id, DEFAULTS.can.right_motor_id)
@@ -57,24 +56,27 @@ def bus_off() -> can.CanOperationError:
 
 class FakeMotors:
     """
-    Two MIT wheel motors on a bus: every frame to them is logged, their firmware answers.
+    Two wheel motors on a bus: every frame they act on is logged, their firmware answers.
 
-    The motors are sim/motor_emulator.py's (``motors``, a MitMotorBank with the default
-    configuration's directions, the joints still): each acts on its frames and answers every
-    one with a reply on ID 0, as the firmware does. ``log`` holds (time [s], motor id, kind,
-    torque [N m]) per frame, decoded as the firmware decodes it: kind 'torque' (torque-only
-    command), 'command' (any other MIT command), 'enter', 'exit', 'zero'. Motors in ``silent``
-    do not answer (they still act on the frames); ``answer=False`` makes a passive recorder
-    (another device answers, e.g. sim_node); ``motor(id)`` is one motor's emulator, for its
-    fault flags (``reply_id``: replies that carry another ID). ``wheel_torques()`` gives the
-    torques the motors apply, as forward-positive wheel torques.
+    The motors are ``protocol``'s emulated firmware (``motors``: bench.emulated_motors; MIT by
+    default, sim/motor_emulator.py's; ``directions`` those of the default configuration, the
+    joints still): each acts on its frames and answers as its firmware does. ``log`` holds
+    (time [s], motor id, kind, torque [N m]) per frame a motor acted on, read off the motor's
+    state after it (``frame_kind``): kind 'torque' (a torque-only command in its torque mode),
+    'command' (any other impedance command), 'enter' (torque mode, no command yet), 'exit'
+    (out of its torque mode). Motors in ``silent`` do not answer (they still act on the
+    frames); ``answer=False`` makes a passive recorder (another device answers, e.g.
+    sim_node); ``motor(id)`` is one motor's emulator, for its fault flags (``reply_id``:
+    replies that carry another ID). ``wheel_torques()`` gives the torques the motors apply, as
+    forward-positive wheel torques.
     """
 
-    def __init__(self, bus: can.BusABC, ids=MOTOR_IDS, answer: bool = True):
+    def __init__(self, bus: can.BusABC, ids=MOTOR_IDS, answer: bool = True,
+                 protocol: MotorProtocol = MIT, directions=None):
         self.bus = bus
         self.ids = tuple(ids)
         self.answer = answer
-        self.motors = MitMotorBank(self.ids, MOTOR_DIRECTIONS, MIT)
+        self.motors = emulated_motors(protocol, self.ids, directions or MOTOR_DIRECTIONS)
         self.silent = self.motors.silent
         self.last_reply: Dict[int, Optional[float]] = dict.fromkeys(self.ids)   # send time [s]
         self.log: List[Tuple[float, int, str, float]] = []
@@ -83,7 +85,7 @@ class FakeMotors:
         self._thread = threading.Thread(target=self._run, name='fake_motors', daemon=True)
         self._thread.start()
 
-    def motor(self, motor_id: int) -> MitMotorEmulator:
+    def motor(self, motor_id: int) -> EmulatedMotor:
         """Return the emulator of one motor."""
         return self.motors.motor(motor_id)
 
@@ -93,29 +95,27 @@ class FakeMotors:
                 msg = self.bus.recv(0.05)
             except (can.CanError, OSError):
                 continue
-            if msg is None or msg.is_error_frame or msg.arbitration_id not in self.ids:
+            if msg is None or msg.is_error_frame:
                 continue
             t = msg.timestamp or time.time()
-            motor = msg.arbitration_id
-            frame = Frame(motor, bytes(msg.data), msg.is_extended_id)
-            cmd = decode(motor, frame.data)
-            if cmd is None:
-                continue
-            if isinstance(cmd, MitCommand):
-                torque_only = cmd.kp == 0.0 and cmd.kd == 0.0
-                self.log.append((t, motor, 'torque' if torque_only else 'command', cmd.torque))
-            else:
-                self.log.append((t, motor, cmd, 0.0))
+            frame = Frame(msg.arbitration_id, bytes(msg.data), msg.is_extended_id)
+            emulators = self.motors.emulators
             with self._lock:
+                before = {i: (e.frames, e.command) for i, e in emulators.items()}
                 replies = self.motors.handle(frame, time.monotonic())
+                acted = [i for i, e in emulators.items() if e.frames != before[i][0]]
+                self.log.extend((t, i) + frame_kind(emulators[i], before[i][1])
+                                for i in acted)
             if not self.answer:
                 continue
             for reply in replies:
                 try:
                     t_send = time.time()   # before the send: the node may take it at once
                     self.bus.send(can.Message(arbitration_id=reply.arbitration_id,
-                                              data=reply.data, is_extended_id=False))
-                    self.last_reply[motor] = t_send
+                                              data=reply.data,
+                                              is_extended_id=reply.is_extended_id))
+                    self.last_reply.update((i, t_send) for i in acted
+                                           if i not in self.silent)
                 except (can.CanError, OSError):
                     pass
 
@@ -159,6 +159,21 @@ class FakeMotors:
         self._stop.set()
         self._thread.join(1.0)
         self.bus.shutdown()
+
+
+def frame_kind(motor: EmulatedMotor, command_before) -> Tuple[str, float]:
+    """
+    Return what a frame a motor just acted on was: (kind, torque [N m]), any protocol.
+
+    Read off the emulator's state (``command_before``: its command before the frame): a new
+    command is 'torque' (kp = kd = 0) or 'command' (any other impedance command) with its
+    feed-forward torque, in the torque mode or not; else 'exit' outside the torque mode (a
+    disable, a set-zero in rest) and 'enter' in it (an enable).
+    """
+    cmd = motor.command
+    if cmd is not None and cmd is not command_before:
+        return ('torque' if cmd.kp == 0.0 and cmd.kd == 0.0 else 'command'), cmd.torque
+    return ('enter' if motor.enabled else 'exit'), 0.0
 
 
 class ErrorFrameStorm:

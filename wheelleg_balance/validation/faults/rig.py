@@ -34,8 +34,10 @@ from std_srvs.srv import SetBool
 from .bench import IDX, make_joints, MODE
 from .doubles import FakeMotors, FlakyBus
 from .plants import StaticPlant
-from ...core.config import DEFAULTS
+from ...core.config import BalanceConfig, DEFAULTS
 from ...core.estimation import pitch_from_quaternion
+from ...core.schema import from_flat
+from ...core.sensing import wheel_motors
 from ...nodes.balance_node import BalanceNode
 
 #: Control period of balance_node [s].
@@ -317,20 +319,24 @@ class Rig:
     """
     balance_node + FakeMotors on a virtual bus + FakeRobot over DDS (see the module docstring).
 
-    ``params`` override the node's parameters (RIG_PARAMS first); ``motor_angles``: {motor ID:
-    joint angle [rad]} the fake motors stand at from the first reply on. Use as a context
-    manager.
+    ``params`` override the node's parameters (RIG_PARAMS first); the fake motors speak the
+    wheels' protocol they configure (``can.protocol``, MIT by default) with their IDs and
+    directions; ``motor_angles``: {motor ID: joint angle [rad]} the fake motors stand at from
+    the first reply on. Use as a context manager.
     """
 
     def __init__(self, context, plant=None, motor_angles=None, **params):
         channel = 'wlb-faults-%s' % uuid.uuid4().hex
         self.channel = channel
         self.node_bus = FlakyBus(channel=channel)
-        self.motors = FakeMotors(can.Bus(interface='virtual', channel=channel))
+        self.params = dict(RIG_PARAMS, **params)
+        wheels = wheel_motors(from_flat(BalanceConfig, self.params))
+        self.motors = FakeMotors(can.Bus(interface='virtual', channel=channel), wheels.ids,
+                                 protocol=wheels.protocol,
+                                 directions={m.motor_id: m.direction for m in wheels.motors})
         for motor_id, angle in (motor_angles or {}).items():
             self.motors.motors.joints[motor_id] = (float(angle), 0.0)
         self.plant = plant if plant is not None else StaticPlant()
-        self.params = dict(RIG_PARAMS, **params)
         namespace = unique_namespace()
         overrides = [Parameter(k, value=v) for k, v in self.params.items()]
         # /diagnostics is absolute: remapped into the namespace, away from other rigs' nodes.

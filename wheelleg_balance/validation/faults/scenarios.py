@@ -35,6 +35,7 @@ from .rig import (FakeRobot, ImuWatch, PERIOD, REACTION_TIME_CHECK, Rig, RIG_PAR
                   Spinning, unique_namespace, wait_for)
 from .. import child_env
 from ...core.config import DEFAULTS
+from ...core.protocols import make_protocol
 from ...nodes.balance_node import BalanceNode
 from ...nodes.can_io import open_bus
 from ...nodes.input_guard import CHECK_PERIOD as INPUT_CHECK_PERIOD
@@ -198,12 +199,35 @@ def _rename_joints(msg: JointState) -> None:
     msg.name = ['other_joint_%d' % i for i in range(len(msg.name))]
 
 
-def scenario_motor_silent(context, timeouts: Optional[dict] = None) -> Outcome:
-    out = Outcome(_name('motor_silent', timeouts), 'right wheel motor stops replying',
-                  'FAULT motor_silent within motor_timeout, zero torque to both motors')
+#: Wheel motors of the other protocols for the motor faults at the node level (issue 31): the
+#: rig's fake motors speak the configured protocol (its emulator); wheel speeds from
+#: joint_states, the torque within every model's limit.
+PROTOCOL_WHEELS = {name: {'can.protocol': name, 'wheel_state_source': 'joint_states',
+                          'max_wheel_torque': 4.0} for name in ('lk', 'cybergear', 'damiao')}
+#: An error code of each protocol's replies and its reason (LK's torque reply has none).
+PROTOCOL_ERRORS = {'cybergear': (0b000100, 'over-temperature'),
+                   'damiao': (0xA, 'over-current')}
+#: The motor-fault scenarios run on each of PROTOCOL_WHEELS: not an LK error code (none in
+#: its reply), nor an LK reboot (its absolute encoder and power-up torque mode lose nothing
+#: the tick needs: test_protocols_on_the_tick.py shows it balancing on).
+MOTOR_FAULTS = ('motor_silent', 'motor_error', 'motor_rebooted', 'motor_over_temperature')
+PROTOCOL_FAULTS = {'lk': ('motor_silent', 'motor_over_temperature'),
+                   'cybergear': MOTOR_FAULTS, 'damiao': MOTOR_FAULTS}
+
+
+def _wheels(name: str, wheels: Optional[str]) -> str:
+    return name if wheels is None else '%s_%s' % (name, wheels)
+
+
+def scenario_motor_silent(context, timeouts: Optional[dict] = None,
+                          wheels: Optional[str] = None) -> Outcome:
+    """Silence the right wheel motor; ``wheels``: its protocol (PROTOCOL_WHEELS; None: MIT)."""
+    out = Outcome(_wheels(_name('motor_silent', timeouts), wheels), 'right wheel motor stops '
+                  'replying', 'FAULT motor_silent within motor_timeout, zero torque to both '
+                  'motors')
     return _timeout_fault(context, out, lambda rig: rig.motors.silent.add(2),
                           lambda rig: rig.motors.last_reply[2], 'motor_timeout', 'motor_silent',
-                          params=timeouts)
+                          params=dict(timeouts or {}, **PROTOCOL_WHEELS.get(wheels, {})))
 
 
 def scenario_unknown_reply_id(context) -> Outcome:
@@ -283,35 +307,49 @@ def _motor_8_byte_replies(rig: Rig, motor_id: int):
     return motor
 
 
-def scenario_motor_error(context) -> Outcome:
+def scenario_motor_error(context, wheels: Optional[str] = None) -> Outcome:
+    """Set an error code in the right motor's replies (MIT: 2, CubeMars' 8-byte reply)."""
+    code, reason = PROTOCOL_ERRORS.get(wheels, (2, 'over-current'))
+
     def inject(rig):
-        _motor_8_byte_replies(rig, MOTOR_IDS[1]).set_error(2)
-    out = _message_fault(context, 'motor_error', 'right motor replies error code 2 '
-                         '(over-current)', inject, 'motor_error')
+        motor = rig.motors.motor(MOTOR_IDS[1])
+        if wheels is None:
+            _motor_8_byte_replies(rig, MOTOR_IDS[1])
+        motor.set_error(code)
+    out = _message_fault(context, _wheels('motor_error', wheels), 'right motor replies error '
+                         'code %d (%s)' % (code, reason), inject, 'motor_error',
+                         params=PROTOCOL_WHEELS.get(wheels))
     return out
 
 
-def scenario_motor_rebooted(context) -> Outcome:
+def scenario_motor_rebooted(context, wheels: Optional[str] = None) -> Outcome:
     """Power-cycle the right wheel motor at 3 rad: rest mode, its angle modulo a rotor turn."""
     motor_id = MOTOR_IDS[1]
 
     def inject(rig):
         with rig.motors._lock:
             rig.motors.motor(motor_id).reboot(rig.motors.motors.joints[motor_id][0])
-    return _message_fault(context, 'motor_rebooted', 'right motor reboots (rest mode, '
-                          'position jumps by rotor turns)', inject, 'motor_rebooted',
-                          params={'motor_angles': {motor_id: 3.0}})
+    return _message_fault(context, _wheels('motor_rebooted', wheels), 'right motor reboots '
+                          '(rest mode, position jumps by rotor turns, or its reply says it is '
+                          'disabled)', inject, 'motor_rebooted',
+                          params=dict(PROTOCOL_WHEELS.get(wheels, {}),
+                                      motor_angles={motor_id: 3.0}))
 
 
-def scenario_motor_over_temperature(context) -> Outcome:
+def scenario_motor_over_temperature(context, wheels: Optional[str] = None) -> Outcome:
     """Report temp_max from the right motor (class b): the sit-down starts (~/state SITTING)."""
-    out = Outcome('motor_over_temperature', 'right motor reports 85 deg C (temp_max)',
-                  'the sit-down starts at the next tick that reads the reply (~/state '
-                  'SITTING), arming refused while hot')
+    section = make_protocol(wheels or DEFAULTS.can.protocol).config_section
+    temp_max = getattr(DEFAULTS.can, section).temp_max
+    out = Outcome(_wheels('motor_over_temperature', wheels), 'right motor reports %.0f deg C '
+                  '(temp_max)' % temp_max, 'the sit-down starts at the next tick that reads '
+                  'the reply (~/state SITTING), arming refused while hot')
 
     def run(rig):
         t0 = time.time()
-        _motor_8_byte_replies(rig, MOTOR_IDS[1]).set_temperature(85.0)
+        motor = rig.motors.motor(MOTOR_IDS[1])
+        if wheels is None:
+            _motor_8_byte_replies(rig, MOTOR_IDS[1])
+        motor.set_temperature(temp_max)
         t_sit = rig.robot.wait_mode('SITTING', 1.0)
         if t_sit is not None:
             out.figures['time_to_sitting_ms'] = round(1e3 * (t_sit - t0), 1)
@@ -322,7 +360,7 @@ def scenario_motor_over_temperature(context) -> Outcome:
         reply = rig.robot.arm()
         out.check('re-arm refused while hot, naming temp_max',
                   not reply.success and 'temp_max' in reply.message)
-    return _on_armed_rig(context, out, run)
+    return _on_armed_rig(context, out, run, **PROTOCOL_WHEELS.get(wheels, {}))
 
 
 def _stamp_fault(context, name: str, fault: str, offset: float) -> Outcome:

@@ -68,6 +68,10 @@ SCENARIOS.update({'%s_%dms' % (name, round(1e3 * sc.ROBOT_TIMEOUTS['imu_timeout'
                                'motor_silent')})
 SCENARIOS.update({name: matrix_scenario(name, kind, cases, params)
                   for name, (kind, cases, params) in MATRICES.items()})
+# The motor faults on the other wheel protocols (issue 31): the rig's fake motors are the
+# configured protocol's emulator.
+SCENARIOS.update({'%s_%s' % (name, wheels): (lambda f, w: lambda context: f(context, wheels=w))(
+    SCENARIOS[name], wheels) for wheels, names in sc.PROTOCOL_FAULTS.items() for name in names})
 
 
 #: The window before the injection over which the machine's contention is judged [s].
