@@ -7,7 +7,8 @@ MitMotorBank and DjiC620Emulator for MIT and the C620): wheels and hips of two p
 bus are found and checked, a DaMiao or CyberGear motor in the wrong control mode is named with
 the fix and never enabled, a motor's fault is told in its protocol's words, and a protocol
 defined in this module (registered with ``register_protocol``, no package file changed) runs
-through the motor checks, the check by hand included.
+through the motor checks, the check by hand included, and on the control tick (the fault
+suite's bench) through the motor faults: silent, error code, over-temperature.
 """
 import dataclasses
 import math
@@ -321,3 +322,50 @@ def test_a_protocol_defined_here_names_its_mode_and_its_fault(here_config):
     right = checks['right wheel (ID 2)']
     assert right.level == FAIL and 'error 1 (the test motor is too hot)' in right.text
     assert [s.key for s in session.found] == ['right_wheel']
+
+
+# ---- the same protocol on the control tick: its motor faults ---------------------------------
+
+def here_bench(cfg):
+    """Return an armed fault-suite bench on ``cfg`` (wheels: _HereProtocol's emulated motors)."""
+    from wheelleg_balance.core.balance_loop import BalanceLoop
+    from wheelleg_balance.validation.faults import bench as bench_module
+    bench = bench_module.LoopBench()
+    bench.config, bench.loop = cfg, BalanceLoop(cfg)   # past from_flat: the choices of import
+    bench.reader = bench_module.joint_state_reader(cfg)
+    bench.motors = bench_module.wheel_motors(bench.loop)
+    req = bench.arm_from_rest()
+    assert req.success, req.message
+    return bench
+
+
+@pytest.mark.parametrize('fault, code', [('silent', 'motor_silent'), ('error', 'motor_error'),
+                                         ('hot', None)])
+def test_a_protocol_defined_here_runs_the_tick_and_its_motor_faults(here_config, fault, code):
+    from wheelleg_balance.core.safety import Mode
+    from wheelleg_balance.validation.faults.bench import make_imu
+    bench = here_bench(here_config)
+    assert isinstance(bench.motors, EmulatedMotors) and bench.mode == int(Mode.BALANCING)
+    right = bench.motors.motor(2)
+    if fault == 'silent':
+        bench.motors.silent.add(2)
+    elif fault == 'error':
+        right.set_error(1)
+    else:   # no section of its own: the figures default to the MIT section's temp_max
+        right.set_temperature(here_config.can.mit.temp_max + 1.0)
+    events = []
+    for _ in range(100):   # 0.2 s, leaning: torque commanded
+        bench.feed(make_imu(0.3, 0.0))
+        bench.tick()
+        events += bench.loop.last_result.events
+        if bench.mode != int(Mode.BALANCING):
+            break
+    faults = bench.loop.supervisor.faults
+    if code is None:
+        assert bench.mode == int(Mode.SITTING)
+        assert any('temp_max' in text for _, text in events), events
+        return
+    assert bench.mode == int(Mode.FAULT) and [f.code for f in faults] == [code]
+    if code == 'motor_error':
+        assert 'the test motor is too hot' in faults[0].message
+    assert all(bench.motors.torque(i, bench.t) == 0.0 for i in WHEELS)
