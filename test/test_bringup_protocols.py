@@ -369,3 +369,28 @@ def test_a_protocol_defined_here_runs_the_tick_and_its_motor_faults(here_config,
     if code == 'motor_error':
         assert 'the test motor is too hot' in faults[0].message
     assert all(bench.motors.torque(i, bench.t) == 0.0 for i in WHEELS)
+
+
+def test_a_hip_on_the_wheels_bus_is_found_there_in_its_own_protocol():
+    wheels_bus, legs_bus = ('bringup_bus%d_%d' % (i, os.getpid()) for i in (0, 1))
+    cfg = with_changes(config(wheels_bus, 'lk', 'damiao'), {'legs.can.channel': legs_bus})
+    hips = bank('damiao', HIPS[:3], cfg.legs)
+    astray = bank('damiao', HIPS[3:], cfg.legs)   # the right rear hip, wired to the wheels' bus
+    responders = [Responder(wheels_bus, [bank('lk', WHEELS, cfg.can), astray]),
+                  Responder(legs_bus, [hips])]
+    ios = [CanIo(can.Bus(interface='virtual', channel=c), send_timeout=0.01)
+           for c in (wheels_bus, legs_bus)]
+    session = BringUp(cfg, ios, NoHands(), lambda t: [], Report(lambda line: None),
+                      scan_ids=range(1, 9))
+    try:
+        session.find_motors()
+        session.exit_all()
+    finally:
+        for x in ios + responders:
+            x.close()
+    checks = {c.item: c for c in session.report.checks}
+    rear = checks['right rear hip (ID 6)']
+    assert rear.level == FAIL and 'it answers on %s instead: wrong bus' % wheels_bus in rear.text
+    fix = 'connect it to %s, or set legs.can.channel: %s' % (legs_bus, wheels_bus)
+    assert rear.fix[0] == fix
+    assert [checks[item].level for item in LABELS[:5]] == [PASS] * 5
