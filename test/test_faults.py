@@ -257,7 +257,7 @@ test_over_temperature_sits_down_and_refuses_to_arm = scenario_test('motor_over_t
                                   for fault in faults])
 def test_motor_faults_on_the_other_wheel_protocols(context, record_testsuite_property,
                                                    fault_retries, name):
-    """The motor faults with LK, CyberGear and DaMiao wheels: the fake motors speak them."""
+    """Run the motor faults and the second commander with LK, CyberGear and DaMiao wheels."""
     run_scenario(name, context, record_testsuite_property, fault_retries)
 
 

@@ -209,9 +209,12 @@ PROTOCOL_ERRORS = {'cybergear': (0b000100, 'over-temperature'),
                    'damiao': (0xA, 'over-current')}
 #: The motor-fault scenarios run on each of PROTOCOL_WHEELS: not an LK error code (none in
 #: its reply), nor an LK reboot (its absolute encoder and power-up torque mode lose nothing
-#: the tick needs: test_protocols_on_the_tick.py shows it balancing on).
-MOTOR_FAULTS = ('motor_silent', 'motor_error', 'motor_rebooted', 'motor_over_temperature')
-PROTOCOL_FAULTS = {'lk': ('motor_silent', 'motor_over_temperature'),
+#: the tick needs: test_protocols_on_the_tick.py shows it balancing on). The second commander
+#: runs on each (balance_node a process on udp_multicast, which hands the node its own frames
+#: back: extended ones too).
+MOTOR_FAULTS = ('motor_silent', 'motor_error', 'motor_rebooted', 'motor_over_temperature',
+                'second_commander')
+PROTOCOL_FAULTS = {'lk': ('motor_silent', 'motor_over_temperature', 'second_commander'),
                    'cybergear': MOTOR_FAULTS, 'damiao': MOTOR_FAULTS}
 
 
@@ -673,16 +676,19 @@ def _node_bus(tag: int):
 
 
 @contextmanager
-def _node_process(context, tag: int):
+def _node_process(context, tag: int, wheels: Optional[str] = None):
     """
     Run balance_node as its own process on udp_multicast with auto_arm; yield the rig.
 
     Yields (proc, motors, robot): the Popen, the FakeMotors that answer on the bus, the
     FakeRobot that feeds the sensors and listens to ~/state and the namespaced /diagnostics.
-    ``tag`` keeps the multicast group and port of concurrent runs apart.
+    ``tag`` keeps the multicast group and port of concurrent runs apart; ``wheels``: the wheel
+    motors' protocol (PROTOCOL_WHEELS; None: MIT), the fake motors its emulator.
     """
     group, port = _node_bus(tag)
-    motors = FakeMotors(open_bus('udp_multicast', group, port))
+    extra = PROTOCOL_WHEELS.get(wheels, {})
+    motors = FakeMotors(open_bus('udp_multicast', group, port),
+                        protocol=make_protocol(extra.get('can.protocol', 'mit')))
     namespace = unique_namespace()
     robot = FakeRobot(context, StaticPlant(), motors, namespace)
     spinning = Spinning(context, (robot,))
@@ -693,6 +699,8 @@ def _node_process(context, tag: int):
             '-p', 'can.udp_port:=%d' % port, '-p', 'auto_arm:=true',
             '-p', 'imu_timeout:=0.5', '-p', 'joint_state_timeout:=0.5',
             '-p', 'motor_timeout:=0.5', '-p', 'diagnostics_rate:=10.0']
+    for name, value in extra.items():
+        args += ['-p', '%s:=%s' % (name, value)]
     proc = subprocess.Popen(args, env=child_env(), stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     try:
@@ -766,29 +774,46 @@ SECOND_COMMANDER_REACTION = 0.05
 #: The second sender's command to motor 1: some torque, and a little damping, which makes its
 #: frames MIT commands ('command' in FakeMotors' log) where the node sends torque-only ones.
 ROGUE_COMMAND = MIT.command_frame(MOTOR_IDS[0], 0.0, 0.0, 0.0, 0.05, 1.0)
+
+
+def _rogue_command(wheels: str):
+    """Return the second sender's command to motor 1 in protocol ``wheels``."""
+    protocol = make_protocol(wheels)
+    if callable(getattr(protocol, 'command_frame', None)):
+        return protocol.command_frame(MOTOR_IDS[0], 0.0, 0.0, 0.0, 0.05, 1.0)
+    return protocol.torque_frames({MOTOR_IDS[0]: 1.0})[0]
+
+
 #: The second sender's period [s] (a script's loop).
 ROGUE_PERIOD = 0.01
 #: _node_process's tag of the second-commander scenario (its own group and port).
 SECOND_COMMANDER_TAG = 61
 
 
-def scenario_second_commander(context) -> Outcome:
-    """Another python-can sender commands motor 1 while balance_node balances (a process)."""
-    out = Outcome('second_commander', 'a second python-can sender on the bus commands motor 1 '
-                  '(1 N m, every %.0f ms) while balance_node balances as its own process'
-                  % (1e3 * ROGUE_PERIOD),
+def scenario_second_commander(context, wheels: Optional[str] = None) -> Outcome:
+    """
+    Another python-can sender commands motor 1 while balance_node balances (a process).
+
+    ``wheels``: the wheel motors' protocol (PROTOCOL_WHEELS; None: MIT), the second sender's
+    command an impedance command of that protocol (some damping: kind 'command') or, for LK,
+    a torque command of its own.
+    """
+    rogue_command = ROGUE_COMMAND if wheels is None else _rogue_command(wheels)
+    out = Outcome(_wheels('second_commander', wheels), 'a second python-can sender on the bus '
+                  'commands motor 1 (1 N m, every %.0f ms) while balance_node balances as its '
+                  'own process' % (1e3 * ROGUE_PERIOD),
                   'FAULT input_conflict naming motor 1 and another sender, zero torque on the '
                   'bus within %.0f ms of its first frame; arming refused while it sends, '
                   'accepted once it has stopped' % (1e3 * SECOND_COMMANDER_REACTION))
     err = ''
-    with _node_process(context, SECOND_COMMANDER_TAG) as (proc, motors, robot):
+    with _node_process(context, SECOND_COMMANDER_TAG, wheels) as (proc, motors, robot):
         balancing = _balances(motors)
         out.check('the process balances (auto_arm)', balancing)
         if not balancing:
             return out
         rogue = open_bus('udp_multicast', *_node_bus(SECOND_COMMANDER_TAG))
-        msg = can.Message(arbitration_id=ROGUE_COMMAND.arbitration_id,
-                          data=ROGUE_COMMAND.data, is_extended_id=False)
+        msg = can.Message(arbitration_id=rogue_command.arbitration_id,
+                          data=rogue_command.data, is_extended_id=rogue_command.is_extended_id)
         try:
             out.check('non-zero torque just before the first frame', _torque_before(
                 motors, time.time()))

@@ -68,8 +68,8 @@ SCENARIOS.update({'%s_%dms' % (name, round(1e3 * sc.ROBOT_TIMEOUTS['imu_timeout'
                                'motor_silent')})
 SCENARIOS.update({name: matrix_scenario(name, kind, cases, params)
                   for name, (kind, cases, params) in MATRICES.items()})
-# The motor faults on the other wheel protocols (issue 31): the rig's fake motors are the
-# configured protocol's emulator.
+# The motor faults and the second commander on the other wheel protocols (issue 31): the
+# fake motors are the configured protocol's emulator.
 SCENARIOS.update({'%s_%s' % (name, wheels): (lambda f, w: lambda context: f(context, wheels=w))(
     SCENARIOS[name], wheels) for wheels, names in sc.PROTOCOL_FAULTS.items() for name in names})
 
