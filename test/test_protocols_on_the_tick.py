@@ -16,7 +16,7 @@ import math
 import pytest
 from wheelleg_balance.core.protocols.emulation import EmulatedMotors
 from wheelleg_balance.core.safety import Mode
-from wheelleg_balance.sim.motor_emulator import DjiC620Emulator, MitMotorBank
+from wheelleg_balance.sim.motor_emulator import DjiC620Emulator, MitMotorEmulator
 import wheelleg_balance.validation.faults.bench as bench_module
 from wheelleg_balance.validation.faults.bench import LoopBench, make_imu
 
@@ -74,8 +74,8 @@ def wheel_motors(loop):
     if loop.protocol.name == 'dji_c620':
         return C620Motors(loop.motors.ids, directions)
     motors = BENCH_MOTORS(loop)
-    if isinstance(motors, MitMotorBank):
-        for e in motors.emulators.values():
+    for e in motors.emulators.values():
+        if isinstance(e, MitMotorEmulator):   # whether from MitMotorBank or make_emulator
             e.reply_temperature = True   # CubeMars' 8-byte replies: temperature, error code
     return motors
 
