@@ -20,7 +20,10 @@ The tick is a short sequence over parts that own their state, each configured by
    controller, the torque split of Sec. V-A), the one owner of the odometry;
 4. the leg task (core/leg_task.py): homing, raising, the height and roll, the sit-down, folding,
    reported as events; ``NoLegs`` where the legs are not driven;
-5. ``Actuation`` (core/actuation.py): the frames to the motors.
+5. ``Actuation`` (core/actuation.py): the frames to the motors;
+
+and, asked for (``TickInputs.excite``), ``Excitation`` (core/excitation.py): an identification
+phase, its wheel torques (EXCITING) or its references (while balancing).
 
 Per mode (core/safety.py): HOMING zero wheel torque while the legs home and rise on the tail;
 BALANCING and SITTING the controller's (or the sit-down's) torques; FAULT zero wheel torque
@@ -35,10 +38,11 @@ from .arming import Action, ArmingSupervisor, AUTO_ARM_STEADY, BALANCE, HOME, sa
     SENSOR_INPUTS, SIT, STOP  # noqa: F401 (AUTO_ARM_STEADY, SENSOR_INPUTS, safety_limits)
 from .balancing import Balancing, core_config  # noqa: F401 (core_config: its old home)
 from .config import BalanceConfig
+from .excitation import BALANCE as BALANCE_PHASE, Excitation, STAND
 from .leg_task import LEG_FAULT, LegTask, NoLegs, RAISED
 from .protocols.base import Frame
-from .safety import BALANCING, COMMANDING, DISARMED, FAULT, HOMING, LEGS, LIFTED, Mode, \
-    SensorSnapshot, SITTING
+from .safety import BALANCING, COMMANDING, DISARMED, EXCITING, FAULT, HOMING, LEGS, LIFTED, \
+    Mode, SensorSnapshot, SITTING
 from .schema import with_changes
 # The names below had their home here; importers of older code find them still.
 from .sensing import all_stop_frames, build_protocol, five_bar, FOREIGN_COMMAND_HOLD, \
@@ -60,6 +64,7 @@ class BalanceLoop:
         self.arming = ArmingSupervisor(cfg, self.sensing, self.legs_task)
         self.balancing = Balancing(cfg)
         self.actuation = Actuation(self.sensing.motors, self.legs_task, self.sensing.from_can)
+        self.excitation = Excitation(cfg)
         self.joint_names = joint_names(cfg)
         # The parts' objects that callers (tests, the fault suite) reach through the loop.
         self.supervisor = self.arming.safety
@@ -76,7 +81,8 @@ class BalanceLoop:
     def apply_parameters(self, changes: Mapping[str, Any]) -> None:
         """Apply validated parameter changes {name: value} (at the start of a tick)."""
         self.cfg = cfg = with_changes(self.cfg, changes)
-        for part in (self.sensing, self.legs_task, self.arming, self.balancing):
+        for part in (self.sensing, self.legs_task, self.arming, self.balancing,
+                     self.excitation):
             part.configure(cfg)
 
     @property
@@ -94,6 +100,9 @@ class BalanceLoop:
     def tick(self, now: float, inputs: TickInputs) -> TickResult:
         """Run one control tick at monotonic time ``now`` [s] (see the module docstring)."""
         r, arming, ctl, legs = self._begin(now, inputs)
+        exc = self.excitation
+        if exc.phase == BALANCE_PHASE:   # its references in place of the operator's
+            inputs.cmd_vel, inputs.cmd_height = exc.references(now)
         last, self._last_now = self._last_now, now
         dt = now - last if last is not None else self.period
         stall_limit = arming.begin(now, dt)
@@ -111,9 +120,13 @@ class BalanceLoop:
         action = arming.request(now, inputs, s, r.events)
         if action is not None:
             self._act(action, now, s)
+        elif inputs.excite:
+            self._start_excitation(now, inputs.excite, s, inputs.guarded)
         st = r.state   # still the last tick's torques: applied since
         mode = arming.check(now, s, dt, stall_limit, commanded, inputs.imu_silent,
                             st.tau_left, st.tau_right, ctl.d_hat, ctl.rising, r.events)
+        if exc.phase:
+            mode = self._excite(mode, now, s)
         if mode is BALANCING or mode is SITTING:
             self._balance(mode, now, s, dt)
         else:
@@ -122,6 +135,9 @@ class BalanceLoop:
             elif mode is DISARMED:
                 self.actuation.poll(r, self._ticks)
             ctl.idle(st)
+            if mode is EXCITING:
+                st.tau_left, st.tau_right = exc.tau
+                st.u = (exc.tau[0] + exc.tau[1]) / self.p.wheel_radius
         self._step_legs(mode, now, s, dt)
         if mode is SITTING and legs.sat_down:
             r.events.append(('info', legs.finish_sit_down()))
@@ -199,6 +215,64 @@ class BalanceLoop:
             else:
                 r.events.append((kind, text))
 
+    # ----------------------------------------------------------------------- excitation
+
+    def _start_excitation(self, now: float, phase: str, s: SensorSnapshot,
+                          guarded: bool) -> None:
+        """Start an identification phase or refuse it (core/excitation.py): the reply."""
+        exc, arming = self.excitation, self.arming
+        why = exc.refusal(phase, arming.safety._mode.name, s, self.balancing.core.odometry.x_dot,
+                          self.balancing.rising)
+        if not why and phase != BALANCE_PHASE:
+            why = arming.start_exciting(now, s, guarded)
+            if not why:
+                self.actuation.enable_wheels(self._result)
+        if why:
+            arming.answer(False, '%s refused: %s' % (phase, why))
+            return
+        line = exc.start(phase, now, s, s.l)
+        self._result.events.append(('info', 'excitation ' + line))
+        if phase == STAND:   # answered once the probe found the wheels free
+            arming.motion.free_wheels.announce(now + exc.duration, 'the stand phase')
+        else:
+            arming.answer(True, line)
+
+    def _excite(self, mode: Mode, now: float, s: SensorSnapshot) -> Mode:
+        """Play the running phase's tick, or end it (an abort, its end, another mode)."""
+        exc, arming, r = self.excitation, self.arming, self._result
+        phase, probing, done = exc.phase, exc.probing, False
+        if phase == BALANCE_PHASE:
+            why, done = ('ended: mode %s' % mode.name, False) if mode is not BALANCING else \
+                exc.balance_abort(now, s.theta - self.balancing.d_hat,
+                                  self.balancing.core.odometry.x_dot)
+        elif mode is not EXCITING:
+            why = 'ended: mode %s' % mode.name
+        else:
+            tau_l, tau_r, why, done = exc.torques(now, s)
+            if not why:
+                if probing and not exc.probing:
+                    arming.answer(True, exc.line)
+                exc.tau = (tau_l, tau_r)
+                self.actuation.excite(r, tau_l, tau_r, self._ticks)
+                return mode
+        if not why:
+            return mode
+        exc.end()
+        arming.motion.free_wheels.withdraw()
+        if probing:
+            arming.answer(False, why if why.startswith('stand refused') else
+                          'stand refused: %s' % why)
+        r.events.append(('info' if done else 'warn', 'excitation %s%s' % (
+            '' if why.startswith(phase) else phase + ': ', why)))
+        if mode is EXCITING:
+            self._act(arming.disarm(), now, s)
+        elif mode is BALANCING and not done:
+            if arming.sit_down():
+                self.legs_task.start_sit_down()
+            else:
+                self._act(arming.disarm(), now, s)
+        return arming.safety._mode
+
     # ------------------------------------------------------------------ sending, stopping
 
     def report_send(self, now: float, error: Optional[str]) -> None:
@@ -246,6 +320,7 @@ class BalanceLoop:
         state.l_target = legs.target
         state.controller = ctl.controller_index
         state.mode = self.supervisor._mode._value_   # int(mode) without the call
+        state.excitation = self.excitation.index
         odom, o = r.odom, ctl.core.odometry   # ctl.odometry without its property's call
         odom.x, odom.y, odom.yaw = o.pose
         x_dot, yaw_rate = o.x_dot, o.yaw_rate
@@ -280,4 +355,5 @@ class BalanceLoop:
             out['legs'] = legs
         if self.legs_task.sit is not None:
             out['sit_down'] = self.legs_task.sit.phase
+        out.update(self.excitation.status(now))
         return out
