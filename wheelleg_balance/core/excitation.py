@@ -163,6 +163,8 @@ class Excitation:
         self.line = ''
         #: The wheel torques of the newest tick [N m] (stand, tail).
         self.tau = (0.0, 0.0)
+        #: The newest probe's speed change over a free wheel's, left and right [-].
+        self.probe_ratios = (math.nan, math.nan)
         self.start_time = 0.0
         self.program = np.zeros((0, 2))
         self._theta0 = 0.0
@@ -296,7 +298,7 @@ class Excitation:
     def _probe_verdict(self, elapsed: float, w_l: float, w_r: float) -> str:
         """Return why the probe says the wheels are not free ('' when both are)."""
         free = PROBE_TORQUE * elapsed / self.cfg.safety.lift_wheel_inertia
-        ratios = ((w_l - self._w0[0]) / free, (w_r - self._w0[1]) / free)
+        self.probe_ratios = ratios = ((w_l - self._w0[0]) / free, (w_r - self._w0[1]) / free)
         if min(ratios) >= PROBE_RATIO:
             return ''
         return ('stand refused: the wheels are not free (the probe changed their speed by '
@@ -332,4 +334,5 @@ class Excitation:
         """Return the excitation's part of /diagnostics: the phase and its progress."""
         return {'excitation': self.phase or 'none',
                 'excitation_progress': self.progress(now),
-                'excitation_probing': self.probing}
+                'excitation_probing': self.probing,
+                'excitation_probe_ratios': self.probe_ratios}
