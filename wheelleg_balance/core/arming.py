@@ -245,7 +245,7 @@ class ArmingSupervisor:
         if reason:
             return reason
         ok, reason = self.safety.start_exciting(now, s, self.sensing.reply_times())
-        return '' if ok else reason
+        return '' if ok else reason.replace('arming refused: ', '', 1)   # the caller's words
 
     def answer(self, ok: bool, message: str) -> None:
         """Hand the operator's pending request (an excitation's) its reply with this tick's."""
