@@ -38,7 +38,8 @@ from .arming import Action, ArmingSupervisor, AUTO_ARM_STEADY, BALANCE, HOME, sa
     SENSOR_INPUTS, SIT, STOP  # noqa: F401 (AUTO_ARM_STEADY, SENSOR_INPUTS, safety_limits)
 from .balancing import Balancing, core_config  # noqa: F401 (core_config: its old home)
 from .config import BalanceConfig
-from .excitation import BALANCE as BALANCE_PHASE, Excitation, STAND
+from .excitation import BALANCE as BALANCE_PHASE
+from .excitation_task import ExcitationTask
 from .leg_task import LEG_FAULT, LegTask, NoLegs, RAISED
 from .protocols.base import Frame
 from .safety import BALANCING, COMMANDING, DISARMED, EXCITING, FAULT, HOMING, LEGS, LIFTED, \
@@ -64,7 +65,9 @@ class BalanceLoop:
         self.arming = ArmingSupervisor(cfg, self.sensing, self.legs_task)
         self.balancing = Balancing(cfg)
         self.actuation = Actuation(self.sensing.motors, self.legs_task, self.sensing.from_can)
-        self.excitation = Excitation(cfg)
+        self.excite = ExcitationTask(cfg, self.arming, self.actuation, self.balancing,
+                                     self.legs_task, self._act)
+        self.excitation = self.excite.excitation
         self.joint_names = joint_names(cfg)
         # The parts' objects that callers (tests, the fault suite) reach through the loop.
         self.supervisor = self.arming.safety
@@ -100,9 +103,6 @@ class BalanceLoop:
     def tick(self, now: float, inputs: TickInputs) -> TickResult:
         """Run one control tick at monotonic time ``now`` [s] (see the module docstring)."""
         r, arming, ctl, legs = self._begin(now, inputs)
-        exc = self.excitation
-        if exc.phase == BALANCE_PHASE:   # its references in place of the operator's
-            inputs.cmd_vel, inputs.cmd_height = exc.references(now)
         last, self._last_now = self._last_now, now
         dt = now - last if last is not None else self.period
         stall_limit = arming.begin(now, dt)
@@ -117,16 +117,11 @@ class BalanceLoop:
             ctl.coast(s, dt)
         ctl.estimate_acceleration(dt)
         self._motor_health(now, r)
-        action = arming.request(now, inputs, s, r.events)
-        if action is not None:
-            self._act(action, now, s)
-        elif inputs.excite:
-            self._start_excitation(now, inputs.excite, s, inputs.guarded)
+        self._request(now, inputs, s)
         st = r.state   # still the last tick's torques: applied since
         mode = arming.check(now, s, dt, stall_limit, commanded, inputs.imu_silent,
                             st.tau_left, st.tau_right, ctl.d_hat, ctl.rising, r.events)
-        if exc.phase:
-            mode = self._excite(mode, now, s)
+        mode = self.excite.step(mode, now, s, r, self._ticks) if self.excitation.phase else mode
         if mode is BALANCING or mode is SITTING:
             self._balance(mode, now, s, dt)
         else:
@@ -136,8 +131,7 @@ class BalanceLoop:
                 self.actuation.poll(r, self._ticks)
             ctl.idle(st)
             if mode is EXCITING:
-                st.tau_left, st.tau_right = exc.tau
-                st.u = (exc.tau[0] + exc.tau[1]) / self.p.wheel_radius
+                self.excite.publish(st)
         self._step_legs(mode, now, s, dt)
         if mode is SITTING and legs.sat_down:
             r.events.append(('info', legs.finish_sit_down()))
@@ -151,7 +145,17 @@ class BalanceLoop:
         self._ticks += 1
         if inputs.params:
             self.apply_parameters(inputs.params)
+        if self.excitation.phase == BALANCE_PHASE:   # its references, not the operator's
+            inputs.cmd_vel, inputs.cmd_height = self.excitation.references(now)
         return r, self.arming, self.balancing, self.legs_task
+
+    def _request(self, now: float, inputs: TickInputs, s: SensorSnapshot) -> None:
+        """Decide an operator's request (arming's, core/arming.py) or start an excitation."""
+        action = self.arming.request(now, inputs, s, self._result.events)
+        if action is not None:
+            self._act(action, now, s)
+        elif inputs.excite:
+            self.excite.start(now, inputs.excite, s, inputs.guarded, self._result)
 
     def _motor_health(self, now: float, r: TickResult) -> None:
         """Judge the motors' health: the wheels' torque derated; too hot, the sit-down."""
@@ -214,64 +218,6 @@ class BalanceLoop:
                 arming.safety.report_fault(now, LEGS, text)
             else:
                 r.events.append((kind, text))
-
-    # ----------------------------------------------------------------------- excitation
-
-    def _start_excitation(self, now: float, phase: str, s: SensorSnapshot,
-                          guarded: bool) -> None:
-        """Start an identification phase or refuse it (core/excitation.py): the reply."""
-        exc, arming = self.excitation, self.arming
-        why = exc.refusal(phase, arming.safety._mode.name, s, self.balancing.core.odometry.x_dot,
-                          self.balancing.rising)
-        if not why and phase != BALANCE_PHASE:
-            why = arming.start_exciting(now, s, guarded)
-            if not why:
-                self.actuation.enable_wheels(self._result)
-        if why:
-            arming.answer(False, '%s refused: %s' % (phase, why))
-            return
-        line = exc.start(phase, now, s, s.l)
-        self._result.events.append(('info', 'excitation ' + line))
-        if phase == STAND:   # answered once the probe found the wheels free
-            arming.motion.free_wheels.announce(now + exc.duration, 'the stand phase')
-        else:
-            arming.answer(True, line)
-
-    def _excite(self, mode: Mode, now: float, s: SensorSnapshot) -> Mode:
-        """Play the running phase's tick, or end it (an abort, its end, another mode)."""
-        exc, arming, r = self.excitation, self.arming, self._result
-        phase, probing, done = exc.phase, exc.probing, False
-        if phase == BALANCE_PHASE:
-            why, done = ('ended: mode %s' % mode.name, False) if mode is not BALANCING else \
-                exc.balance_abort(now, s.theta - self.balancing.d_hat,
-                                  self.balancing.core.odometry.x_dot)
-        elif mode is not EXCITING:
-            why = 'ended: mode %s' % mode.name
-        else:
-            tau_l, tau_r, why, done = exc.torques(now, s)
-            if not why:
-                if probing and not exc.probing:
-                    arming.answer(True, exc.line)
-                exc.tau = (tau_l, tau_r)
-                self.actuation.excite(r, tau_l, tau_r, self._ticks)
-                return mode
-        if not why:
-            return mode
-        exc.end()
-        arming.motion.free_wheels.withdraw()
-        if probing:
-            arming.answer(False, why if why.startswith('stand refused') else
-                          'stand refused: %s' % why)
-        r.events.append(('info' if done else 'warn', 'excitation %s%s' % (
-            '' if why.startswith(phase) else phase + ': ', why)))
-        if mode is EXCITING:
-            self._act(arming.disarm(), now, s)
-        elif mode is BALANCING and not done:
-            if arming.sit_down():
-                self.legs_task.start_sit_down()
-            else:
-                self._act(arming.disarm(), now, s)
-        return arming.safety._mode
 
     # ------------------------------------------------------------------ sending, stopping
 

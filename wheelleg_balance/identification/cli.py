@@ -16,8 +16,9 @@ recordings offline: a folder's ``*.mcap`` files, or one file, each named after i
 log time since the file's first message, repeatable) to take the phases out of one recording.
 The leg geometry is the config's (``leg.*``). The report and the plots go beside the output.
 
-On a robot, the phases are played by balance_node's excitation mode (issue 32, item 2), which
-is not written yet: record them by hand (docs/identification.md) or wait for it.
+On a robot, balance_node's excitation mode plays the phases (``~/excite/stand``, ``tail``,
+``balance``; docs/identification.md): record them with ``ros2 bag record`` and fit them with
+``--recording`` and ``--window`` (``--phase``, all in one, is not written yet).
 Exit code 0 when fitted, 1 when a phase is missing or a fit fails (with the reason), 2 for
 missing packages.
 """
@@ -173,9 +174,9 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
         prog='identify', description='Fit the robot model (model (1) plus the wheel inertia, '
         'damping and motor delay) from the stand, tail and balance phases.',
-        epilog="On a robot the phases need balance_node's excitation mode (issue 32, item 2), "
-        'which is not written yet; --recording fits phases recorded otherwise '
-        '(docs/identification.md).')
+        epilog="On a robot balance_node's excitation mode plays the phases (~/excite/stand, "
+        'tail, balance): record them with ros2 bag record and fit them with --recording and '
+        '--window (docs/identification.md).')
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument('--sim', action='store_true',
                         help='play the phases on the MuJoCo robot in-process, then fit')
