@@ -112,10 +112,10 @@ def test_identify_phase_stand_records_and_fits_the_wheel_inertia(
     rec = read_mcap(tmp_path / 'recordings' / 'stand.mcap', 'stand')
     st = rec[STATE]
     playing = st['excitation'] == PHASE_INDEX['stand']
-    # the whole phase recorded at the control rate: the probe and the 3 s program
-    span = st.t[playing][-1] - st.t[playing][0]
-    assert PROBE_TIME + STAND_DURATION - 0.1 < span < PROBE_TIME + STAND_DURATION + 0.5, span
-    assert playing.sum() > 0.8 * (PROBE_TIME + STAND_DURATION) / PERIOD
+    # the whole phase recorded at the control rate, one state a tick (receipt times stretch in
+    # lockstep: the count tells): the probe and the 3 s program
+    ticks = (PROBE_TIME + STAND_DURATION) / PERIOD
+    assert 0.9 * ticks < playing.sum() <= ticks + 2, playing.sum()
     bound = stand_amplitude(from_flat(BalanceConfig, {}))
     tau = np.abs(np.concatenate([st['tau_left'], st['tau_right']]))
     assert 0.9 * bound < tau.max() <= bound + 1e-9
