@@ -144,6 +144,16 @@ class Actuation:
         r.frames += self.wheels.protocol.torque_frames({
             left.motor_id: left.direction * tau_left, right.motor_id: right.direction * tau_right})
 
+    def excite(self, r, tau_left: float, tau_right: float, tick: int) -> None:
+        """EXCITING: the wheel torques [N m]; resting hips polled as in DISARMED."""
+        self.torques(r, tau_left, tau_right)
+        if self.legs.driven and not tick % POLL_TICKS:
+            r.leg_frames += self.legs.poll_frames()
+
+    def enable_wheels(self, r) -> None:
+        """Enter motor mode, the wheels only (EXCITING: the hips rest)."""
+        r.frames += self.wheels.enable_frames()
+
     def zero(self, r) -> None:
         """Zero torque to the wheels, staying in motor mode (FAULT, HOMING)."""
         r.frames += self.wheels.zero_torque_frames()

@@ -16,10 +16,10 @@ import math
 from typing import Any, Dict, List, NamedTuple, Optional, Tuple
 
 from .config import BalanceConfig
-from .lift import FREE_FALL, LiftDetector
+from .lift import FREE_FALL, FreeWheelNotice, LiftDetector
 from .motor_health import judge_motors
 from .response import MAX_PITCH as RESPONSE_PITCH, ResponseCheck
-from .safety import BALANCING, COMMANDING, DISARMED, FAULT, HOMING, IMU_STALE, \
+from .safety import BALANCING, COMMANDING, DISARMED, EXCITING, FAULT, HOMING, IMU_STALE, \
     INPUT_CONFLICT, LEGS, LIFTED, LOOP_STALL, Mode, OVER_TEMPERATURE, RESPONSE, SafetyLimits, \
     SafetySupervisor, SensorSnapshot, SITTING
 from .sensing import motor_name
@@ -187,6 +187,9 @@ class ArmingSupervisor:
         reason = self._refusal(now, s)
         if sup._mode is BALANCING or sup._mode is SITTING:
             self._pending = ('noop', True, 'already balancing')
+        elif sup._mode is EXCITING:
+            self._pending = ('refused', False, 'arming refused: an excitation phase runs '
+                             '(~/stop or ~/arm false ends it)')
         elif reason:
             self._pending = ('refused', False, 'arming refused: %s' % reason)
         elif not self.legs.ready():
@@ -229,6 +232,24 @@ class ArmingSupervisor:
         else:
             sup.report_fault(now, LEGS, 'homed, but %s' % reason)
         return None
+
+    def start_exciting(self, now: float, s: SensorSnapshot, guarded: bool) -> str:
+        """
+        Go from DISARMED to EXCITING (core/excitation.py's stand, tail) with arming's checks.
+
+        guarded: TickInputs.guarded. Returns '' when it did, else why not.
+        """
+        if not guarded:
+            return 'the watchdog is not watching the control loop yet'
+        reason = self.sensor_conflict or self._refusal(now, s)
+        if reason:
+            return reason
+        ok, reason = self.safety.start_exciting(now, s, self.sensing.reply_times())
+        return '' if ok else reason.replace('arming refused: ', '', 1)   # the caller's words
+
+    def answer(self, ok: bool, message: str) -> None:
+        """Hand the operator's pending request (an excitation's) its reply with this tick's."""
+        self._pending = ('excite', ok, message)
 
     def disarm(self) -> Action:
         """Disarm (the sit-down ended): the STOP action."""
@@ -349,6 +370,8 @@ class MotionChecks:
                                  wheel_radius=self.p.wheel_radius, gravity=self.p.gravity)
         self.response = ResponseCheck(self.p, sc.response_window, sc.response_min_effect,
                                       sc.response_gain, sc.response_time)
+        #: Planned free wheels (the stand phase, a flight): neither check judges meanwhile.
+        self.free_wheels = FreeWheelNotice()
         self.configure(cfg)
 
     def configure(self, cfg: BalanceConfig) -> None:
@@ -374,9 +397,12 @@ class MotionChecks:
         the wrong sign, judged where model (1) holds: the wheels commanded, near upright (the
         tail off the ground), not in free fall. The lift (core/lift.py): a fault when the
         wheels spin free; the legs then hold. Both see the torques of the last tick [N m].
+        Neither judges while ``free_wheels`` (a planned free-wheel window: the stand phase, a
+        flight) covers the tick.
         """
         mode = sup._mode
-        if not (mode is BALANCING or mode is SITTING):   # not sup.torque_allowed
+        if not (mode is BALANCING or mode is SITTING or mode is EXCITING) \
+                or now < self.free_wheels.until:   # free_wheels.covers(now)
             self.response.reset()
             self.lift.reset()
             return False

@@ -20,7 +20,10 @@ The tick is a short sequence over parts that own their state, each configured by
    controller, the torque split of Sec. V-A), the one owner of the odometry;
 4. the leg task (core/leg_task.py): homing, raising, the height and roll, the sit-down, folding,
    reported as events; ``NoLegs`` where the legs are not driven;
-5. ``Actuation`` (core/actuation.py): the frames to the motors.
+5. ``Actuation`` (core/actuation.py): the frames to the motors;
+
+and, asked for (``TickInputs.excite``), ``Excitation`` (core/excitation.py): an identification
+phase, its wheel torques (EXCITING) or its references (while balancing).
 
 Per mode (core/safety.py): HOMING zero wheel torque while the legs home and rise on the tail;
 BALANCING and SITTING the controller's (or the sit-down's) torques; FAULT zero wheel torque
@@ -35,10 +38,12 @@ from .arming import Action, ArmingSupervisor, AUTO_ARM_STEADY, BALANCE, HOME, sa
     SENSOR_INPUTS, SIT, STOP  # noqa: F401 (AUTO_ARM_STEADY, SENSOR_INPUTS, safety_limits)
 from .balancing import Balancing, core_config  # noqa: F401 (core_config: its old home)
 from .config import BalanceConfig
+from .excitation import BALANCE as BALANCE_PHASE
+from .excitation_task import ExcitationTask
 from .leg_task import LEG_FAULT, LegTask, NoLegs, RAISED
 from .protocols.base import Frame
-from .safety import BALANCING, COMMANDING, DISARMED, FAULT, HOMING, LEGS, LIFTED, Mode, \
-    SensorSnapshot, SITTING
+from .safety import BALANCING, COMMANDING, DISARMED, EXCITING, FAULT, HOMING, LEGS, LIFTED, \
+    Mode, SensorSnapshot, SITTING
 from .schema import with_changes
 # The names below had their home here; importers of older code find them still.
 from .sensing import all_stop_frames, build_protocol, five_bar, FOREIGN_COMMAND_HOLD, \
@@ -60,6 +65,9 @@ class BalanceLoop:
         self.arming = ArmingSupervisor(cfg, self.sensing, self.legs_task)
         self.balancing = Balancing(cfg)
         self.actuation = Actuation(self.sensing.motors, self.legs_task, self.sensing.from_can)
+        self.excite = ExcitationTask(cfg, self.arming, self.actuation, self.balancing,
+                                     self.legs_task, self._act)
+        self.excitation = self.excite.excitation
         self.joint_names = joint_names(cfg)
         # The parts' objects that callers (tests, the fault suite) reach through the loop.
         self.supervisor = self.arming.safety
@@ -76,7 +84,8 @@ class BalanceLoop:
     def apply_parameters(self, changes: Mapping[str, Any]) -> None:
         """Apply validated parameter changes {name: value} (at the start of a tick)."""
         self.cfg = cfg = with_changes(self.cfg, changes)
-        for part in (self.sensing, self.legs_task, self.arming, self.balancing):
+        for part in (self.sensing, self.legs_task, self.arming, self.balancing,
+                     self.excitation):
             part.configure(cfg)
 
     @property
@@ -108,12 +117,11 @@ class BalanceLoop:
             ctl.coast(s, dt)
         ctl.estimate_acceleration(dt)
         self._motor_health(now, r)
-        action = arming.request(now, inputs, s, r.events)
-        if action is not None:
-            self._act(action, now, s)
+        self._request(now, inputs, s)
         st = r.state   # still the last tick's torques: applied since
         mode = arming.check(now, s, dt, stall_limit, commanded, inputs.imu_silent,
                             st.tau_left, st.tau_right, ctl.d_hat, ctl.rising, r.events)
+        mode = self.excite.step(mode, now, s, r, self._ticks) if self.excitation.phase else mode
         if mode is BALANCING or mode is SITTING:
             self._balance(mode, now, s, dt)
         else:
@@ -122,6 +130,8 @@ class BalanceLoop:
             elif mode is DISARMED:
                 self.actuation.poll(r, self._ticks)
             ctl.idle(st)
+            if mode is EXCITING:
+                self.excite.publish(st)
         self._step_legs(mode, now, s, dt)
         if mode is SITTING and legs.sat_down:
             r.events.append(('info', legs.finish_sit_down()))
@@ -135,7 +145,17 @@ class BalanceLoop:
         self._ticks += 1
         if inputs.params:
             self.apply_parameters(inputs.params)
+        if self.excitation.phase == BALANCE_PHASE:   # its references, not the operator's
+            inputs.cmd_vel, inputs.cmd_height = self.excitation.references(now)
         return r, self.arming, self.balancing, self.legs_task
+
+    def _request(self, now: float, inputs: TickInputs, s: SensorSnapshot) -> None:
+        """Decide an operator's request (arming's, core/arming.py) or start an excitation."""
+        action = self.arming.request(now, inputs, s, self._result.events)
+        if action is not None:
+            self._act(action, now, s)
+        elif inputs.excite:
+            self.excite.start(now, inputs.excite, s, inputs.guarded, self._result)
 
     def _motor_health(self, now: float, r: TickResult) -> None:
         """Judge the motors' health: the wheels' torque derated; too hot, the sit-down."""
@@ -246,6 +266,7 @@ class BalanceLoop:
         state.l_target = legs.target
         state.controller = ctl.controller_index
         state.mode = self.supervisor._mode._value_   # int(mode) without the call
+        state.excitation = self.excitation.index
         odom, o = r.odom, ctl.core.odometry   # ctl.odometry without its property's call
         odom.x, odom.y, odom.yaw = o.pose
         x_dot, yaw_rate = o.x_dot, o.yaw_rate
@@ -280,4 +301,5 @@ class BalanceLoop:
             out['legs'] = legs
         if self.legs_task.sit is not None:
             out['sit_down'] = self.legs_task.sit.phase
+        out.update(self.excitation.status(now))
         return out

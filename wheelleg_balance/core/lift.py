@@ -62,6 +62,34 @@ _FORCE_LOW, _FORCE_HIGH = PLAUSIBLE_FORCE
 NAN = math.nan
 
 
+class FreeWheelNotice:
+    """
+    A notice that the wheels are free on purpose until ``until`` [s] (a planned window).
+
+    The lift and response checks do not judge meanwhile and start afresh after it.
+
+    One mechanism for every planned free-wheel or flight window: the identification's stand
+    phase (core/excitation.py), a jump's flight. ``announce`` it with its end and why,
+    ``withdraw`` it when the window ends early.
+    """
+
+    def __init__(self):
+        self.until = -math.inf
+        self.reason = ''
+
+    def announce(self, until: float, reason: str) -> None:
+        """Free wheels are planned up to ``until`` [s] (monotonic), for ``reason``."""
+        self.until, self.reason = until, reason
+
+    def withdraw(self) -> None:
+        """End the window now."""
+        self.until, self.reason = -math.inf, ''
+
+    def covers(self, now: float) -> bool:
+        """Return True while the window lasts at ``now`` [s]."""
+        return now < self.until
+
+
 class LiftDetector:
     """
     The lifted check (see the module docstring).

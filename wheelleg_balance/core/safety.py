@@ -13,6 +13,8 @@ times and the newest samples every control tick):
   the wheels get zero torque; any condition is a FAULT, like BALANCING.
 - ``SITTING``: the sit-down sequence (core/balance_loop.py): still balancing while the legs go
   down and the body leans onto its tail, then DISARMED; any condition is a FAULT.
+- ``EXCITING``: an identification phase with the wheels' scripted torques, from DISARMED
+  (core/excitation.py: stand, tail); any condition is a FAULT; it ends in DISARMED.
 
 Fault conditions (checked every tick): stale IMU (``imu_timeout``), stale wheel states
 (``joint_state_timeout``), a non-finite measurement, |theta~| > ``fall_angle``, |roll| >
@@ -184,14 +186,15 @@ class Mode(enum.IntEnum):
     FAULT = 2
     HOMING = 3
     SITTING = 4
+    EXCITING = 5
 
 
 #: The modes by plain names for the tick's hot path: ``Mode.BALANCING`` looks the member up
 #: through the enum's class on every use, some ten times slower than a module name.
-DISARMED, BALANCING, FAULT, HOMING, SITTING = (Mode.DISARMED, Mode.BALANCING, Mode.FAULT,
-                                               Mode.HOMING, Mode.SITTING)
+DISARMED, BALANCING, FAULT, HOMING, SITTING, EXCITING = (
+    Mode.DISARMED, Mode.BALANCING, Mode.FAULT, Mode.HOMING, Mode.SITTING, Mode.EXCITING)
 #: Modes in which the motors are commanded (and must answer).
-COMMANDING = (BALANCING, HOMING, SITTING)
+COMMANDING = (BALANCING, HOMING, SITTING, EXCITING)
 
 
 @dataclass
@@ -466,6 +469,13 @@ class SafetySupervisor:
                      motor_reply_times: Mapping[int, Optional[float]]) -> Tuple[bool, str]:
         """Request HOMING (the legs before the first arm), with arm's checks and pose rule."""
         return self._start(now, s, motor_reply_times, Mode.HOMING, 'homing the legs')
+
+    def start_exciting(self, now: float, s: SensorSnapshot,
+                       motor_reply_times: Mapping[int, Optional[float]]) -> Tuple[bool, str]:
+        """Request EXCITING (an identification phase) from DISARMED, with arm's checks."""
+        if self._mode is not Mode.DISARMED:
+            return False, 'not disarmed (mode %s)' % self._mode.name
+        return self._start(now, s, motor_reply_times, Mode.EXCITING, 'exciting')
 
     def _start(self, now, s, motor_reply_times, mode: Mode, what: str) -> Tuple[bool, str]:
         self._conditions = self.check(now, s, motor_reply_times)

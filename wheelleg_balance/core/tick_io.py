@@ -50,6 +50,8 @@ class TickInputs:
     imu_silent: why the caller's own clock found the IMU silent where the tick's time cannot
     (on IMU stamps, lockstep: no sample for ``lockstep_wall_timeout`` of wall time, so no
     tick's time moved): FAULT imu_stale with it while commanding; '' none (an event).
+    excite: an identification phase to play (core/excitation.py: 'stand', 'tail', 'balance'),
+    answered like an arm request; '' none.
     """
 
     imu: List[ImuSample] = field(default_factory=list)
@@ -63,6 +65,7 @@ class TickInputs:
     guarded: bool = True
     conflicts: Dict[str, str] = field(default_factory=dict)
     imu_silent: str = ''
+    excite: str = ''
 
     def clear(self) -> None:
         """Empty every input (the lists are reused)."""
@@ -75,6 +78,7 @@ class TickInputs:
         self.estop = False
         self.params = {}
         self.imu_silent = ''
+        self.excite = ''
 
 
 @dataclass
@@ -87,7 +91,8 @@ class LoopState:
     [N]; tau_left, tau_right: wheel torques commanded [N m]; controller: index into
     CONTROLLER_NAMES of the active controller; mode: core/safety.Mode the commands were made in;
     x_dot_ref, yaw_rate_ref: the shaped references [m/s, rad/s]; roll [rad]; l_ref: the shaped
-    height reference [m]; l_target: the commanded height [m].
+    height reference [m]; l_target: the commanded height [m]; excitation: the identification
+    phase running (core/excitation.py PHASE_INDEX: 1 stand, 2 tail, 3 balance; 0 none).
     """
 
     theta: float = math.nan
@@ -107,6 +112,7 @@ class LoopState:
     roll: float = math.nan
     l_ref: float = math.nan
     l_target: float = math.nan
+    excitation: float = 0.0
 
     def values(self) -> List[float]:
         """Return the fields' values in STATE_FIELDS order."""

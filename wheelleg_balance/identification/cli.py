@@ -16,8 +16,12 @@ recordings offline: a folder's ``*.mcap`` files, or one file, each named after i
 log time since the file's first message, repeatable) to take the phases out of one recording.
 The leg geometry is the config's (``leg.*``). The report and the plots go beside the output.
 
-On a robot, the phases are played by balance_node's excitation mode (issue 32, item 2), which
-is not written yet: record them by hand (docs/identification.md) or wait for it.
+``identify --phase stand|tail|balance --config robot.yaml --output fitted.yaml`` on a robot:
+asks the running balance_node (``--node``) to play the phase (its excitation mode,
+``~/excite/<phase>``, core/excitation.py; docs/identification.md), records it into
+``recordings/<phase>.mcap`` beside the output (live.py) and fits the phases recorded there:
+with all three, the fitted file; else the report and the phases missing (exit code 1).
+balance_node must publish ~/state at the control rate (``state_publish_rate: 500``).
 Exit code 0 when fitted, 1 when a phase is missing or a fit fails (with the reason), 2 for
 missing packages.
 """
@@ -34,7 +38,7 @@ import numpy as np
 
 from . import excite, fit, study
 from .params import balance_params, params_yaml
-from .records import PHASES, read_mcap, Record, write_mcap
+from .records import PHASES, read_mcap, Record, STATE, write_mcap
 from ..core.kinematics import FiveBarLeg
 from ..core.schema import from_flat
 from ..optional import MissingDependency, pyplot
@@ -168,19 +172,36 @@ def print_table(report: Dict, comparison: Optional[Dict] = None) -> None:
     print('residuals (RMS): %s' % ', '.join('%s %.3g' % kv for kv in report['residuals'].items()))
 
 
+def record_live(phase: str, node: str, folder: str) -> str:
+    """Play ``phase`` on the running balance_node, write ``folder/<phase>.mcap``; return folder."""
+    from .live import record_phase
+    rec = record_phase(phase, node)
+    os.makedirs(folder, exist_ok=True)
+    path = os.path.join(folder, phase + '.mcap')
+    write_mcap(path, rec)
+    print('identify: %s recorded (%.1f s) into %s' % (phase, rec[STATE].t[-1] - rec[STATE].t[0],
+                                                      path))
+    return folder
+
+
 def main(argv=None) -> int:
     """Entry point of the ``identify`` executable."""
     parser = argparse.ArgumentParser(
         prog='identify', description='Fit the robot model (model (1) plus the wheel inertia, '
         'damping and motor delay) from the stand, tail and balance phases.',
-        epilog="On a robot the phases need balance_node's excitation mode (issue 32, item 2), "
-        'which is not written yet; --recording fits phases recorded otherwise '
-        '(docs/identification.md).')
+        epilog='On a robot, --phase asks the running balance_node to play a phase '
+        '(~/excite/<phase>; state_publish_rate: 500), records it into the recordings folder '
+        'beside --output and fits the phases there once all three are (docs/identification.md).')
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument('--sim', action='store_true',
                         help='play the phases on the MuJoCo robot in-process, then fit')
     source.add_argument('--recording', metavar='DIR_OR_MCAP',
                         help='fit MCAP recordings: a folder or a file named after its phase')
+    source.add_argument('--phase', choices=PHASES,
+                        help='on a robot: play this phase on the running balance_node, record '
+                        'it beside --output (recordings/<phase>.mcap), fit what is there')
+    parser.add_argument('--node', default='/balance_node',
+                        help='--phase: the balance_node to ask (default /balance_node)')
     parser.add_argument('--sim-params', metavar='FILE.yaml',
                         help='--sim: a sim_node parameter file (robot.*, imu_pitch_offset)')
     parser.add_argument('--short', action='store_true', help='--sim: short phases (tests)')
@@ -193,7 +214,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if args.sim and (args.config or args.window):
         parser.error('--config and --window go with --recording')
-    if args.recording and (args.sim_params or args.short):
+    if not args.sim and (args.sim_params or args.short):
         parser.error('--sim-params and --short go with --sim')
     start = time.monotonic()
     comparison = None
@@ -207,7 +228,10 @@ def main(argv=None) -> int:
         else:
             fitted_path = args.output or 'fitted.yaml'
             folder = os.path.dirname(os.path.abspath(fitted_path))
-            records = recordings(args.recording, args.window)
+            source = args.recording
+            if args.phase:
+                source = record_live(args.phase, args.node, os.path.join(folder, 'recordings'))
+            records = recordings(source, args.window)
             leg = leg_of(args.config)
         if 'stand' not in records:
             print('identify: no stand phase: every fit needs it', file=sys.stderr)
@@ -229,7 +253,7 @@ def main(argv=None) -> int:
     except MissingDependency as e:
         print('identify: %s' % e, file=sys.stderr)
         return 2
-    except (ValueError, KeyError, RuntimeError, OSError) as e:
+    except (ValueError, KeyError, RuntimeError, OSError) as e:   # live.PhaseError too
         print('identify: %s' % e, file=sys.stderr)
         return 1
     print_table(report, comparison)

@@ -24,14 +24,14 @@ from typing import Dict, Optional, Sequence
 import numpy as np
 
 from .records import IMU, IMU_COLUMNS, joint_columns, JOINTS, Record, SeriesBuilder, STATE
+# The programs are the tick's (core/excitation.py, balance_node's excitation plays them too).
+from ..core.excitation import chirp, HEIGHTS, PERIOD, stand_torques, \
+    tail_torques  # noqa: F401
 from ..core.tick_io import STATE_FIELDS
 from ..sim.config import RobotBodyConfig
 from ..sim.layout import LEG_JOINTS, WHEEL_JOINTS
 
-#: The control period the phases are recorded at [s] (balance_node's).
-PERIOD = 0.002
-#: The balance phase's heights [m] and the time between their runs in the Record [s].
-HEIGHTS = (0.37, 0.46, 0.55)
+#: The time between the balance phase's runs (one per height) in the Record [s].
 GAP = 1.0
 #: Joints recorded: the wheels, then the hips.
 JOINT_NAMES = WHEEL_JOINTS + LEG_JOINTS
@@ -61,30 +61,6 @@ class _Recorder:
                                    STATE: self.state.series()})
 
 
-def chirp(t: np.ndarray, f0: float, f1: float, duration: float) -> np.ndarray:
-    """Return sin of a linear chirp from f0 to f1 [Hz] over duration [s] at times t [s]."""
-    k = (f1 - f0) / duration
-    return np.sin(2.0 * math.pi * (f0 * t + 0.5 * k * t * t))
-
-
-def stand_torques(duration: float = 3.0, amplitude: float = 0.8) -> np.ndarray:
-    """
-    Return the stand's wheel torque program [N m] per tick: (left, right) rows.
-
-    The first half steps between +amplitude and -amplitude every 0.2 s (starting up, so the
-    wheel speed stays one-signed and bounded), the second half a chirp from 1 to 20 Hz; the
-    right wheel plays the left's program shifted by a quarter of it, so both wheels' data
-    are not one.
-    """
-    n = int(round(duration / PERIOD))
-    t = np.arange(n) * PERIOD
-    half = 0.5 * duration
-    steps = amplitude * np.where(np.floor(t / 0.2) % 2 == 0, 1.0, -1.0)
-    sweep = amplitude * chirp(t - half, 1.0, 20.0, half)
-    left = np.where(t < half, steps, sweep)
-    return np.stack([left, np.roll(left, n // 4)], axis=1)
-
-
 def play_stand(body: RobotBodyConfig, d_offset: float = 0.0,
                duration: float = 3.0) -> Record:
     """Return the ``stand`` phase's Record (see the module docstring)."""
@@ -99,20 +75,6 @@ def play_stand(body: RobotBodyConfig, d_offset: float = 0.0,
         rec.command(t, {'tau_left': left, 'tau_right': right, 'mode': 0.0})
         sim.step(left, right, PERIOD)
     return rec.record()
-
-
-def tail_torques(duration: float = 3.0, amplitude: float = 0.5) -> np.ndarray:
-    """
-    Return the tail's wheel torque program [N m] per tick (left, right rows): pulses.
-
-    0.25 s pulses of +amplitude, a pause, -amplitude, a pause, repeated: the robot rolls
-    forward and back about where it started, the body on its tail.
-    """
-    n = int(round(duration / PERIOD))
-    t = np.arange(n) * PERIOD
-    phase = np.floor(t / 0.25) % 4
-    tau = amplitude * np.select([phase == 0, phase == 2], [1.0, -1.0], 0.0)
-    return np.stack([tau, tau], axis=1)
 
 
 def play_tail(body: RobotBodyConfig, d_offset: float = 0.0, duration: float = 3.0,

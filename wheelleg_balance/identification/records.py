@@ -128,6 +128,8 @@ def read_mcap(path, phase: str, start: float = -np.inf, end: float = np.inf,
                                + list(msg.effort))
             elif len(msg.data) == len(STATE_FIELDS):
                 state.add(t_log, msg.data)
+            elif len(msg.data) == len(STATE_FIELDS) - 1:   # before ~/state's ``excitation``
+                state.add(t_log, list(msg.data) + [0.0])
     if joints is None:
         raise KeyError('%s has no joint_states' % path)
     return Record(phase, {IMU: imu.series(), JOINTS: joints.series(), STATE: state.series()})

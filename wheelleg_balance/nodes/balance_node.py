@@ -14,13 +14,15 @@ them:
   executor;
 - ``~/arm`` (std_srvs/SetBool) forwarded, answered with the loop's reply; ``~/stop``
   (std_srvs/Trigger): the software emergency stop, zero torque and the motors to rest at once;
+  ``~/excite/stand``, ``~/excite/tail``, ``~/excite/balance`` (std_srvs/Trigger): an
+  identification phase (core/excitation.py), answered like ``~/arm``;
 - ``~/state``, ``odom``, ``joint_states`` (the six motors and the passive knees) and TF
   (base_footprint -> base_link, odom -> base_footprint with ``enable_odom_tf``) published from
   what the loop sends back, ``/diagnostics`` from its status (nodes/diagnostics.py).
 
 Modes (core/safety.py): DISARMED sends no frames (the motors were left in rest mode by the exit
 frames), BALANCING sends the controller's torques, FAULT sends zero torque every tick until an
-explicit re-arm or disarm. See docs/balance_node.md.
+explicit re-arm or disarm, EXCITING an identification phase's torques. See docs/balance_node.md.
 """
 import gc
 import itertools
@@ -29,7 +31,7 @@ import signal
 import sys
 import threading
 import time
-from typing import Callable, Dict, Optional
+from typing import Callable, Dict, Optional, Tuple
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TwistStamped
@@ -47,6 +49,7 @@ from .loop_processes import LoopProcesses, START_TIMEOUT  # noqa: F401 (START_TI
 from .params import load, ParameterGuard
 from .state_publisher import StatePublisher
 from ..core.config import BalanceConfig
+from ..core.excitation import PHASES
 from ..core.safety import Mode
 from ..core.tick_io import CmdHeight, CmdVel, MODE
 from ..processes import StartError
@@ -125,6 +128,10 @@ class BalanceNode(Node):
         self.create_subscription(Float64, 'cmd_height', self._on_cmd_height, 10,
                                  event_callbacks=no_events)
         self.create_service(SetBool, '~/arm', self._on_arm)
+        for phase in PHASES:   # one Trigger per phase: std_srvs has no request with a name
+            self.create_service(Trigger, '~/excite/' + phase,
+                                lambda request, response, phase=phase:
+                                self._on_excite(phase, response))
         self.create_service(Trigger, '~/stop', self._on_stop)
         self._diag_period = 1.0 / cfg.publish.diagnostics_rate
         self.create_timer(0.05, self._on_diagnostics_timer)
@@ -211,20 +218,29 @@ class BalanceNode(Node):
         return response
 
     def _on_arm(self, request, response):
+        response.success, response.message = self._ask(bool(request.data))
+        self.get_logger().info('~/arm %s: %s (%s)' % (
+            request.data, 'ok' if response.success else 'refused', response.message))
+        return response
+
+    def _on_excite(self, phase: str, response):
+        response.success, response.message = self._ask(phase)
+        self.get_logger().info('~/excite/%s: %s (%s)' % (
+            phase, 'ok' if response.success else 'refused', response.message))
+        return response
+
+    def _ask(self, request) -> Tuple[bool, str]:
+        """Send an arm request (True, False or a phase's name); return the loop's answer."""
         request_id = next(self._arm_ids)
         waiting = [threading.Event(), None]
         with self._lock:
             self._arm_waiting[request_id] = waiting
-        self.link.send_object(L.ARM, (request_id, bool(request.data)))
-        if waiting[0].wait(ARM_TIMEOUT):
-            response.success, response.message = waiting[1]
-        else:
-            response.success, response.message = False, 'control loop did not answer'
+        self.link.send_object(L.ARM, (request_id, request))
+        answer = waiting[1] if waiting[0].wait(ARM_TIMEOUT) else \
+            (False, 'control loop did not answer')
         with self._lock:
             self._arm_waiting.pop(request_id, None)
-        self.get_logger().info('~/arm %s: %s (%s)' % (
-            request.data, 'ok' if response.success else 'refused', response.message))
-        return response
+        return answer
 
     def _forward_parameters(self, changes, new_config) -> None:
         self.config = new_config

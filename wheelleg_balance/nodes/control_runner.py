@@ -196,10 +196,13 @@ class ControlRunner:
             inputs.cmd_height = payload
         elif tag == L.ESTOP:
             inputs.estop = True
-        elif tag == L.ARM:
+        elif tag == L.ARM:   # an arm, a disarm, or an identification phase by its name
             request_id, arm = payload
             self._arm_ids.append(request_id)
-            inputs.arm = bool(arm)
+            if isinstance(arm, str):
+                inputs.excite = arm
+            else:
+                inputs.arm = bool(arm)
         elif tag == L.PARAMS:
             inputs.params = {**inputs.params, **payload}
         elif tag == L.CONFLICTS:

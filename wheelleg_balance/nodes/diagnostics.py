@@ -32,10 +32,17 @@ def safety_status(st: Dict[str, Any], hardware_id: str) -> DiagnosticStatus:
         out.level, out.message = ERROR, 'FAULT: ' + _reasons(faults)
     elif mode == 'BALANCING':
         out.level, out.message = OK, 'BALANCING with %s' % st['controller']
+    elif mode == 'EXCITING':
+        out.level, out.message = OK, 'EXCITING'
     else:
         out.level = WARN if conditions else OK
         out.message = 'DISARMED' + (' (cannot arm: %s)' % _reasons(conditions)
                                     if conditions else '')
+    phase = st.get('excitation', 'none')
+    if phase != 'none':   # an identification phase (core/excitation.py)
+        out.message += '; identification %s %.0f %%%s' % (
+            phase, 100.0 * st['excitation_progress'],
+            ' (probing the wheels)' if st['excitation_probing'] else '')
     if st['input_conflicts']:   # inputs refused for their publishers (nodes/input_guard.py)
         out.level = max(out.level, WARN)
         out.message += '; refused: %s' % st['input_conflicts']
@@ -56,7 +63,8 @@ def safety_status(st: Dict[str, Any], hardware_id: str) -> DiagnosticStatus:
         refused_imu_stamps=st['refused_imu_stamps'],
         refused_imu_reason=st['refused_imu_reason'], input_conflicts=st['input_conflicts'],
         foreign_commands=st.get('foreign_commands', 0), foreign_command_reason=foreign,
-        warnings=','.join(c for c, _ in warnings), warning_reasons=_reasons(warnings))
+        warnings=','.join(c for c, _ in warnings), warning_reasons=_reasons(warnings),
+        excitation=phase, excitation_progress=float(st.get('excitation_progress', 0.0)))
     return out
 
 

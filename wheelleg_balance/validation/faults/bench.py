@@ -35,7 +35,7 @@ MIT = MitProtocol()
 #: One code step of the 12-bit MIT torque over +-18 N m [N m].
 TORQUE_LSB = (MIT.t_max - MIT.t_min) / 4095
 IDX = {name: i for i, name in enumerate(STATE_FIELDS)}
-MODE = {'DISARMED': 0, 'BALANCING': 1, 'FAULT': 2, 'HOMING': 3, 'SITTING': 4}
+MODE = {'DISARMED': 0, 'BALANCING': 1, 'FAULT': 2, 'HOMING': 3, 'SITTING': 4, 'EXCITING': 5}
 WHEEL_JOINTS = ('left_wheel_joint', 'right_wheel_joint')
 LEG_JOINTS = ('left_leg_front_joint', 'left_leg_rear_joint', 'right_leg_front_joint',
               'right_leg_rear_joint')
