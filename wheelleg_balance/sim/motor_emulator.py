@@ -48,8 +48,7 @@ import math
 from typing import Dict, Iterable, List, Mapping, Optional, Tuple
 
 from ..core.protocols.base import Frame
-from ..core.protocols.dji import (CURRENT_CODE_MAX, CURRENT_MAX, DjiC620Protocol,
-                                  ENCODER_COUNTS)
+from ..core.protocols.dji import CURRENT_CODE_MAX, CURRENT_MAX, DjiC620Protocol
 from ..core.protocols.emulation import EmulatedMotor, rotor_turn_position
 from ..core.protocols.mit import MitProtocol
 
@@ -211,7 +210,6 @@ class DjiC620Emulator:
         codes = self.protocol.decode_command(frame)
         if codes is None:
             return []
-        ratio = self.protocol.gear_ratio
         out = []
         for esc_id, code in codes.items():
             if esc_id not in self.currents:
@@ -219,9 +217,7 @@ class DjiC620Emulator:
             self.currents[esc_id] = code
             if esc_id in self.silent:
                 continue
-            position, velocity = (x if math.isfinite(x) else 0.0 for x in self.state[esc_id])
-            angle = round(position * ratio * ENCODER_COUNTS / (2.0 * math.pi))
-            rpm = round(velocity * ratio * 60.0 / (2.0 * math.pi))
-            out.append(self.protocol.encode_feedback(esc_id, angle, rpm, code,
-                                                     self.temperature))
+            position, velocity = self.state[esc_id]
+            out.append(self.protocol.encode_state(esc_id, position, velocity, code,
+                                                  self.temperature))
         return out

@@ -18,7 +18,8 @@ robot, the motor (decode_command, encode_reply). Per-tick encoding is int math a
 import math
 from typing import Dict, Iterable, List, NamedTuple, Optional, Tuple, Union
 
-from .base import Frame, frame_bytes, MAX_STANDARD_ID, MotorFeedback, MotorProtocol
+from .base import (Frame, frame_bytes, MAX_STANDARD_ID, MotorFeedback, MotorProtocol,
+                   ReplyCodes)
 
 ENTER_MOTOR_MODE = bytes((0xFF,) * 7 + (0xFC,))
 EXIT_MOTOR_MODE = bytes((0xFF,) * 7 + (0xFD,))
@@ -146,6 +147,11 @@ class MitProtocol(MotorProtocol):
     def speed_range(self) -> float:
         """Return the largest speed [rad/s] the reply's velocity field holds."""
         return min(-self.v_min, self.v_max)
+
+    def reply_codes(self) -> ReplyCodes:
+        """Return the 16-bit position wrapping every 65536 codes, the 12-bit speed: truncated."""
+        return ReplyCodes(self.p_min, (self.p_max - self.p_min) / 65535.0, 65536, False,
+                          (self.v_max - self.v_min) / 4095.0, True)
 
     def error_reason(self, code: int) -> str:
         """Return the meaning of an 8-byte reply's error code (CubeMars AK firmware)."""
