@@ -10,7 +10,8 @@ node tests put on their buses; ``DjiC620Emulator`` the other protocol's ESCs (at
 (``make_emulator``), as every protocol's does; this docstring describes it.
 
 The MIT motor follows bgkatz/motorcontrol, the mini-cheetah motor firmware whose MIT mode
-CubeMars AK motors speak (file references below are to that repository; docs/simulation.md has the table):
+CubeMars AK motors speak (file references below are to that repository; docs/simulation.md
+has the table):
 
 - power-up in rest mode: no torque. ``FF..FC`` enters motor mode with an empty command (zero
   torque until the first command), ``FF..FD`` goes back to rest, ``FF..FE`` makes the present
