@@ -49,6 +49,9 @@ class Recorder:
         self.faults: List[str] = []    # balance_node's fault reasons (/diagnostics)
         self.fault_times: Dict[str, float] = {}   # reason: receipt time it was first seen
         self.loop: Dict[str, str] = {}  # balance_node's newest control-loop statistics
+        #: The highest load [%] balance_node's CAN status reported of each bus (bus_load_pct,
+        #: leg_bus_load_pct with the hips on their own), and its protocol.
+        self.bus_load: Dict[str, object] = {}
         self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 10,
                                       event_callbacks=no_events)
         self.arm_client = self.node.create_client(SetBool, 'balance_node/arm')
@@ -85,10 +88,24 @@ class Recorder:
                     st.message not in self.faults:
                 self.faults.append(st.message)
                 self.fault_times[st.message] = time.monotonic()
+            elif st.name == 'balance_node: CAN':
+                self._take_bus_load(st.values)
             elif st.name == 'balance_node: control loop':
                 self.loop = {kv.key: kv.value for kv in st.values
                              if kv.key in ('overruns', 'late_share', 'period_p99_ms',
                                            'period_max_ms', 'ticks')}
+
+    def _take_bus_load(self, values) -> None:
+        for kv in values:
+            if kv.key == 'protocol':
+                self.bus_load['protocol'] = kv.value
+            elif kv.key in ('bus_load_pct', 'leg_bus_load_pct'):
+                try:
+                    load = float(kv.value)
+                except ValueError:
+                    continue
+                if load == load and load > self.bus_load.get(kv.key, -1.0):   # not NaN
+                    self.bus_load[kv.key] = load
 
     def start_mcap(self, path):
         """Also write every topic of the run into an MCAP file (validation/recording.py)."""
@@ -105,6 +122,7 @@ class Recorder:
     def clear(self):
         """Forget the previous run's recordings, faults and loop statistics."""
         self.gt, self.state, self.cmd, self.faults, self.loop = [], [], [], [], {}
+        self.bus_load = {}
         self.fault_times = {}
         self.height = []
 
