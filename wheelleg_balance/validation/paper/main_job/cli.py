@@ -45,7 +45,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument('--teleop-config', default='',
                    help='teleop_node parameter file (default: config/teleop_xbox.yaml)')
     p.add_argument('--robot', default='', choices=[''] + list(ROBOTS),
-                   help='the simulated robot\'s motors (default: six MIT motors); %s' % '; '.join(
+                   help="the simulated robot's motors (default: six MIT motors); %s" % '; '.join(
                        '%s: %s' % kv for kv in ROBOTS.items()))
     p.add_argument('--can-group', default='', help='udp_multicast group of the CAN bus '
                    '(default: one of 239.74.0.0/16 from the process id)')

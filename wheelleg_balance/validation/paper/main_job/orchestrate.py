@@ -321,7 +321,7 @@ def run_experiment(exp: Scenario, rec: Recorder, setup: RunSetup, log: Progress)
     result['sim_node_loop'] = sim_stats(folder / 'sim_node.log')
     result['clock'] = 'lockstep' if setup.lockstep else 'wall'
     result['balance_node_loop'] = dict(rec.loop)
-    result['can_bus_load'] = dict(rec.bus_load)
+    result['can_bus_load'] = rec.bus_load_summary()
     lag = trace.sim_lag() if trace is not None else 0.0
     result['after_stop'] = [f for f in rec.faults if f not in faults]
     # In lockstep a slow machine only slows the run (sim_lag, late ticks); a step without its

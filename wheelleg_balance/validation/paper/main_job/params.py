@@ -27,7 +27,7 @@ from ..table import IMU_OFFSET
 #: balance_node's sensor and motor timeouts against sim_node on the wall clock [s] (default 0.05).
 SIM_SENSOR_TIMEOUT = 0.5
 #: The simulated robots' motors beside the default (six MIT motors): robot -> what it has.
-ROBOTS = {'lk_damiao': 'LK MF9025 wheels, DaMiao DM-J4310 hips, one bus',
+ROBOTS = {'lk_damiao': 'LK MF9025 (35-turn) wheels, DaMiao DM-J6006 hips, one bus',
           'c620_cybergear': 'C620 + M3508 P19 wheels, CyberGear hips, one bus'}
 
 
@@ -101,7 +101,7 @@ def sim_time(t: float) -> float:
 
 def sim_params(can_group: str, udp_port: int, exp: Scenario,
                lockstep: bool = True, robot: str = '') -> Dict[str, object]:
-    """sim_node parameters: config/sim.yaml (and robot's) on this bus, IMU offset d, the scenario."""
+    """sim_node parameters: config/sim.yaml (robot's over it) on this bus, d, the scenario."""
     flat = installed('sim.yaml', 'sim_node', robot)
     flat.update({
         'can.channel': can_group, 'can.udp_port': udp_port,

@@ -49,8 +49,8 @@ class Recorder:
         self.faults: List[str] = []    # balance_node's fault reasons (/diagnostics)
         self.fault_times: Dict[str, float] = {}   # reason: receipt time it was first seen
         self.loop: Dict[str, str] = {}  # balance_node's newest control-loop statistics
-        #: The highest load [%] balance_node's CAN status reported of each bus (bus_load_pct,
-        #: leg_bus_load_pct with the hips on their own), and its protocol.
+        #: The loads [%] balance_node's CAN status reported of each bus (bus_load_pct,
+        #: leg_bus_load_pct with the hips on their own), and the wheels' protocol.
         self.bus_load: Dict[str, object] = {}
         self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 10,
                                       event_callbacks=no_events)
@@ -104,8 +104,25 @@ class Recorder:
                     load = float(kv.value)
                 except ValueError:
                     continue
-                if load == load and load > self.bus_load.get(kv.key, -1.0):   # not NaN
-                    self.bus_load[kv.key] = load
+                if load == load:   # not NaN (before a second status)
+                    self.bus_load.setdefault(kv.key, []).append(load)
+
+    def bus_load_summary(self) -> Dict[str, object]:
+        """
+        Return the wheels' protocol and each bus's median and highest load [%].
+
+        The median is the budget's figure; the highest can be one status window that a stall
+        of the simulated clock (lockstep) made short.
+        """
+        out: Dict[str, object] = {}
+        for key, value in self.bus_load.items():
+            if isinstance(value, list):
+                ordered = sorted(value)
+                out[key.replace('_pct', '_median_pct')] = ordered[len(ordered) // 2]
+                out[key.replace('_pct', '_max_pct')] = ordered[-1]
+            else:
+                out[key] = value
+        return out
 
     def start_mcap(self, path):
         """Also write every topic of the run into an MCAP file (validation/recording.py)."""

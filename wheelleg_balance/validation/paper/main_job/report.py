@@ -111,10 +111,10 @@ def _section(r: dict, has_fig3: bool) -> List[str]:
             '%s %s' % kv for kv in sorted(r.get('balance_node_loop', {}).items())) or '-'))
     if r.get('can_bus_load'):
         load = r['can_bus_load']
-        lines.append('- CAN budget: %s; the highest load balance_node reported: %s.' % (
-            load.get('protocol', '-'), ', '.join(
-                '%s %.1f %%' % (k.replace('_pct', ''), v) for k, v in sorted(load.items())
-                if k.endswith('_pct')) or '-'))
+        lines.append('- CAN budget: %s wheels; the loads balance_node reported (median, max '
+                     'of its statuses): %s.' % (load.get('protocol', '-'), ', '.join(
+                         '%s %.1f %%' % (k.replace('_pct', ''), v)
+                         for k, v in sorted(load.items()) if k.endswith('_pct')) or '-'))
     for d in r.get('discarded_attempts', []):
         lines.append('- an earlier attempt was discarded: %s' % d)
     for n in r['notes']:
