@@ -122,6 +122,9 @@ class RobotMotors:
         self._motors = [(JOINTS.index(s.joint), self.emulators[s.joint]) for s in self.specs]
         self._bus = {s.joint: s.bus for s in self.specs}
         self._hips_driven = sim.legs == 'motors'
+        #: Per joint: frames at the previous command_marks, ticks in a row with a new one.
+        self._frames_seen: Dict[str, int] = {}
+        self._streak: Dict[str, int] = {}
         self.hand = Hand(len(JOINTS))
         self._hand_on = False
         self._refresh()
@@ -163,8 +166,29 @@ class RobotMotors:
         return self._time
 
     def command_marks(self) -> Dict[str, int]:
-        """Return {joint: frames received} of the motors in motor mode now (see commanded)."""
-        return {j: e.frames for j, e in self.emulators.items() if _in_motor_mode(e)}
+        """
+        Return {joint: frames received} of the motors in motor mode now (see commanded).
+
+        Called once a tick (lockstep): it also counts the ticks in a row each motor got a
+        frame in (``_driven``).
+        """
+        seen = self._frames_seen
+        for j, e in self.emulators.items():
+            self._streak[j] = self._streak.get(j, 0) + 1 if e.frames > seen.get(j, 0) else 0
+            seen[j] = e.frames
+        return {j: e.frames for j, e in self.emulators.items() if self._driven(j, e)}
+
+    def _driven(self, joint: str, e: EmulatedMotor) -> bool:
+        """
+        Tell whether balance_node drives a motor: in its torque mode and commanded.
+
+        A motor that takes torque from power-up (LK, the C620) is in its torque mode before the
+        node sends anything, and the C620 stays in it after the node's last (zero) command:
+        lockstep waits for such a motor only while it got a frame in each of the last
+        DRIVEN_TICKS ticks (a disarmed node's occasional zero command is not the tick's).
+        """
+        return e.enabled and e.frames > 0 and (
+            not e.powered_enabled or self._streak.get(joint, 0) >= DRIVEN_TICKS)
 
     def commanded(self, marks: Dict[str, int]) -> bool:
         """
@@ -178,7 +202,7 @@ class RobotMotors:
         mode (a hip enabled alone), every motor in motor mode. A motor that entered motor mode
         since counts from its enter frame; one that left it is no longer waited for.
         """
-        enabled = [(j, e) for j, e in self.emulators.items() if _in_motor_mode(e)]
+        enabled = [(j, e) for j, e in self.emulators.items() if self._driven(j, e)]
         wheels = [(j, e) for j, e in enabled if j in WHEEL_JOINTS]
         waited = wheels + [(j, e) for j, e in enabled if self._bus[j] != 0] if wheels \
             else enabled
@@ -211,11 +235,6 @@ class RobotMotors:
         return e.position(self._q[k]), e.velocity(self._v[k]), e.motor_torque
 
 
-def _in_motor_mode(e: EmulatedMotor) -> bool:
-    """
-    Tell whether balance_node drives a motor: in its torque mode and commanded at least once.
-
-    A motor that takes torque from power-up (LK, the C620) is in its torque mode before the
-    node sends anything; lockstep waits for it only once the node does.
-    """
-    return e.enabled and e.frames > 0
+#: Ticks in a row with a frame after which a motor in its torque mode from power-up counts
+#: as driven (lockstep waits for it): the C620 has no mode the node leaves on a disarm.
+DRIVEN_TICKS = 2
