@@ -56,6 +56,7 @@ bursts: when the wait or the CPU makes it late it simply runs slower than real t
 (``real_time_factor``). The closed loop is then the same on a loaded machine as on an idle one
 (docs/simulation.md).
 """
+from collections import Counter
 import sys
 import threading
 import time
@@ -72,7 +73,7 @@ from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
 from . import lean
-from .can_io import open_bus
+from .can_io import hands_back_own_frames, open_bus
 from .dds import apply_udp_only
 from .params import load
 from ..core.deadline import DeadlineLoop
@@ -328,6 +329,9 @@ class SimNode(Node):
 
     def _can_loop(self, index: int) -> None:
         bus = self.buses[index]
+        # Our own replies, where the bus hands them back (udp_multicast): a motor never hears
+        # its own frames, and an LK motor's echo of run (0x88) is that command again.
+        own: Optional[Counter] = Counter() if hands_back_own_frames(bus) else None
         while not self._stop.is_set():
             try:
                 msg = bus.recv(timeout=0.05)
@@ -337,6 +341,13 @@ class SimNode(Node):
                 continue
             if msg is None or msg.is_error_frame or msg.is_remote_frame:
                 continue
+            if own:
+                key = (msg.arbitration_id, bytes(msg.data), msg.is_extended_id)
+                if own[key] > 0:
+                    own[key] -= 1
+                    if not own[key]:
+                        del own[key]
+                    continue
             # None: another node's frame, our own reply, or not a command frame.
             with self._commands:
                 replies = self.motors.replies(
@@ -350,6 +361,8 @@ class SimNode(Node):
                     bus.send(can.Message(arbitration_id=reply.arbitration_id, data=reply.data,
                                          is_extended_id=reply.is_extended_id), timeout=0.01)
                     self.can_replies += 1
+                    if own is not None:
+                        own[(reply.arbitration_id, bytes(reply.data), reply.is_extended_id)] += 1
                 except (can.CanError, OSError, ValueError):
                     self.can_errors += 1
 
