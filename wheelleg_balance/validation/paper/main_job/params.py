@@ -27,7 +27,7 @@ from ..table import IMU_OFFSET
 #: balance_node's sensor and motor timeouts against sim_node on the wall clock [s] (default 0.05).
 SIM_SENSOR_TIMEOUT = 0.5
 #: The simulated robots' motors beside the default (six MIT motors): robot -> what it has.
-ROBOTS = {'lk_damiao': 'LK MF9025 (35-turn) wheels, DaMiao DM-J6006 hips, one bus',
+ROBOTS = {'lk_damiao': 'LK MF9025 wheels, DaMiao DM-J6006 hips, one bus',
           'c620_cybergear': 'C620 + M3508 P19 wheels, CyberGear hips, one bus'}
 
 
