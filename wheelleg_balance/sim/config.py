@@ -275,9 +275,11 @@ class SimConfig:
                 out.append('%s.%s figures: %s' % (name, owner.protocol, e))
                 continue
             if codec.torque_limit > limit:
-                out.append("%s: the %s motors' torque limit %.1f N m above the model's "
-                           'actuators (%.0f N m)' % (name, owner.protocol, codec.torque_limit,
-                                                     limit))
+                # The figure that sets it: the range (t_max) or the current (LK, the C620).
+                field = 't_max' if hasattr(codec, 't_max') else 'current_limit'
+                out.append("%s.%s.%s: the %s motors' torque limit %.1f N m above the model's "
+                           'actuators (%.0f N m)' % (name, codec.config_section, field,
+                                                     owner.protocol, codec.torque_limit, limit))
         return out
 
 
