@@ -234,7 +234,8 @@ def test_sim_config_names_defaults_and_rules():
     assert check(with_changes(cfg, {'legs.motor_ids': [1, 2, 3, 4],
                                     'legs.can.channel': 'legs'})) == []
     for bad in ({'legs.mode': 'servo'}, {'height_schedule': [0.0, 0.4]},
-                {'can.protocol': 'dji_c620'}, {'can.mit.timeout_action': 'stop'},
+                {'can.protocol': 'no_such_protocol'}, {'legs.can.protocol': 'dji_c620'},
+                {'can.mit.timeout_action': 'stop'},
                 {'leg_joints': ['a', 'b']}, {'can.left_direction': 0},
                 {'initial_pose': 'lying'}):
         with pytest.raises(ValueError):

@@ -368,9 +368,6 @@ class BalanceConfig:
             out.append("max_wheel_torque %.2f N m above the %s motors' limit %.2f N m (can.%s)"
                        % (self.safety.max_wheel_torque, c.protocol, wheel.torque_limit,
                           wheel.config_section))
-        if self.wheel_state.wheel_state_source == 'can' and self.can.protocol != 'mit':
-            out.append('wheel_state_source can needs can.protocol mit (wheel speeds from MIT '
-                       'replies); use joint_states with %s' % self.can.protocol)
         if self.loop.clock_source == 'imu_stamp' and self.can.interface not in TEST_INTERFACES:
             # The hips' bus (legs.can.channel) is opened with can.interface too.
             out.append('clock_source imu_stamp (lockstep with a simulator) needs a test bus, '

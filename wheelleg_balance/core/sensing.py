@@ -139,12 +139,13 @@ class Sensing:
         #: Each motor set with its model's figures (core/motor_health.py).
         self.health = [(self.motors, _model(cfg.can, self.protocol))] + (
             [(self.hips, _model(cfg.legs, self.hips.protocol))] if self.hips is not None else [])
-        wrap = 65536.0 / 65535.0 if cfg.wheel_state.position_wraps else math.inf
         for motors, model in self.health:   # the reboot check where the model sets a limit
             p = motors.protocol
             if getattr(model, 'position_jump', None):
+                codes = p.reply_codes()   # the field wraps every p_codes codes
                 motors.jump_limit = model.position_jump
-                motors.span = math.inf if p.position_saturates else p.position_span * wrap
+                motors.span = math.inf if codes.saturates or not \
+                    cfg.wheel_state.position_wraps else codes.p_codes * codes.p_step
                 motors.speed_limit = 0.9 * p.speed_range
         #: Command frames to our motors that this node did not send (a second commander): how
         #: many, the newest's receipt time [s], the motors it addressed, one since the check.
@@ -303,10 +304,12 @@ class Sensing:
     def _mismatch_advice(self) -> str:
         """Return the likely cause of an encoder_mismatch and its fix, for this configuration."""
         if self.cfg.wheel_state.position_wraps:
-            return ('likely firmware that saturates the position at +-%g rad instead of '
-                    'wrapping it: set can.mit.wrap: false. The wheel angle is dead-reckoned '
-                    'from the reported speed until the position agrees with it again'
-                    % self.protocol.p_max)
+            codes = self.protocol.reply_codes()
+            return ('likely firmware that saturates the position at its range ends (%g and '
+                    '%g rad) instead of wrapping it: set can.mit.wrap: false. The wheel angle '
+                    'is dead-reckoned from the reported speed until the position agrees with '
+                    'it again' % (codes.p_zero, codes.p_zero + (codes.p_codes - 1)
+                                  * codes.p_step))
         return ('with can.mit.wrap: false already: an encoder or reply fault? Check the motor '
                 'and can.mit.p_min / p_max. The wheel angle is dead-reckoned from the reported '
                 'speed until the position agrees with it again')

@@ -1,13 +1,23 @@
 r"""
-Wheel angle and speed from the wheel motors' MIT replies (host side; pure, no CAN here).
+Wheel angle and speed from the wheel motors' replies, any protocol (host side; no CAN here).
 
-On the robot the wheel encoders sit inside the foot motors: each MIT reply (one per command the
-host sends, core/protocols/mit.py) is the only wheel reading. ``WheelState`` turns the replies
-of one motor into the wheel's angle and speed in the wheel's forward-positive convention
-(relative to the leg, as core/estimation.py expects), and keeps the reply's time so the caller
-can check its age.
+On the robot the wheel encoders sit inside the foot motors: each reply (one per command the
+host sends) is the only wheel reading. ``WheelState`` turns the replies of one motor into the
+wheel's angle and speed in the wheel's forward-positive convention (relative to the leg, as
+core/estimation.py expects), and keeps the reply's time so the caller can check its age.
 
-Resolution of the reply (AK80-9 class ranges: +-12.5 rad in 16 bits, +-50 rad/s in 12 bits):
+The protocol says how its reply codes them (``MotorProtocol.reply_codes``): the position's
+code of 0 and step, how many codes the field has and whether it wraps after them (MIT: 65536
+codes over +-p_max; LK: the single-turn encoder, 2^14..2^16 codes a rotor turn; the C620:
+8192 codes a rotor turn) or sticks at its end codes (CyberGear: 65536 codes over +-4 pi),
+the speed's step, and whether the firmware truncates. Everything below works in those codes;
+the figures are the MIT defaults'. Other protocols' resolution: LK MF9025 (16-bit encoder,
+direct drive) 0.096 mrad and 1 deg/s = 17.5 mrad/s (rounded, no centring); C620 with the
+M3508 P19 0.040 mrad and 1 rotor rpm = 5.5 mrad/s at the output; CyberGear 0.38 mrad and
+0.92 mrad/s.
+
+Resolution of the MIT reply (AK80-9 class ranges: +-12.5 rad in 16 bits, +-50 rad/s in 12
+bits):
 
 - position: 25 / 65535 = 0.381 mrad per code (38 um of wheel travel at r_w = 0.1 m);
 - speed: 100 / 4095 = 0.0244 rad/s per code, i.e. 2.44 mm/s of x_dot at r_w = 0.1 m. The
@@ -53,10 +63,10 @@ and the robot rolled away (issue 29: 2.4 m/s and rising). Two rules tell it:
   uncertainty explains at the speed (core/motor_health.py RECEIPT_JITTER, 12 ms, as the reboot
   check allows for it; the same allowance covers a speed reading that lags the position by up
   to 6 ms through a speed reversal, a firmware's velocity filter);
-- the code sits at a range end (0 or 65535) while the reported speed, above two speed codes
-  (STUCK_MIN_SPEED_CODES: 0.05 rad/s) and pointing out of the range, has integrated to more
-  than that same limit since the code got there (catches a slow roll the window cannot: 0.05
-  rad per 50 ms is 1 rad/s).
+- the code sits at a range end (0 or the field's last code) while the reported speed, above
+  two speed codes (STUCK_MIN_SPEED_CODES: 0.05 rad/s) and pointing out of the range, has
+  integrated to more than that same limit since the code got there (catches a slow roll the
+  window cannot: 0.05 rad per 50 ms is 1 rad/s).
 
 From then on the angle is dead-reckoned from the reported speed, starting from the angle of
 the reply the contradiction began after (the window's first reply, or the first one at the
@@ -79,6 +89,7 @@ import math
 from typing import NamedTuple, Optional
 
 from .motor_health import RECEIPT_JITTER
+from .protocols.base import MotorProtocol
 from .protocols.mit import MitProtocol
 
 #: The contradiction rules (see the module docstring): the window [s], the limit [rad].
@@ -89,6 +100,8 @@ STUCK_MIN_SPEED_CODES = 2.0
 #: Share of the speed field's end beyond which no rule judges (the speed field, not the
 #: position, saturates or wraps there: core/balance_loop.py's reboot check skips it alike).
 SPEED_FIELD_SHARE = 0.9
+#: One speed code of the default MIT ranges (+-50 rad/s in 12 bits) [rad/s].
+MIT_V_CODE = 100.0 / 4095.0
 _INF = math.inf
 
 
@@ -116,39 +129,48 @@ class WheelState:
     One wheel motor's replies -> wheel angle and speed (see the module docstring).
 
     direction: +1 when a positive motor position turns the wheel forward, else -1 (the node's
-    ``can.left_direction`` / ``can.right_direction``); protocol: the motor model's MIT ranges;
-    time_constant: tau of the speed blend [s]; max_gap: a reply gap longer than this [s]
-    restarts the speed blend from the reported speed; wrap: the firmware wraps the position
-    (True: bgkatz, CubeMars) or saturates it; centre_codes: read each field at the centre of
-    its code (firmware that truncates, as both do).
+    ``can.left_direction`` / ``can.right_direction``); protocol: the wheel motors' codec
+    (default MitProtocol()), whose ``reply_codes`` say how the reply codes position and
+    speed; time_constant: tau of the speed blend [s]; max_gap: a reply gap longer than this
+    [s] restarts the speed blend from the reported speed; wrap: False says the firmware
+    saturates a position field that the protocol says wraps (``can.mit.wrap: false``);
+    centre_codes: read each field at the centre of its code where the protocol says the
+    firmware truncates.
     """
 
-    def __init__(self, direction: int = 1, protocol: Optional[MitProtocol] = None,
+    def __init__(self, direction: int = 1, protocol: Optional[MotorProtocol] = None,
                  time_constant: float = 0.1, max_gap: float = 0.1, wrap: bool = True,
                  centre_codes: bool = True):
         if direction not in (1, -1):
             raise ValueError('direction must be 1 or -1')
         if not (time_constant > 0.0 and max_gap > 0.0):
             raise ValueError('time_constant and max_gap must be > 0')
-        mit = protocol if protocol is not None else MitProtocol()
+        protocol = protocol if protocol is not None else MitProtocol()
+        codes = protocol.reply_codes()
         self.direction = direction
         self.time_constant = float(time_constant)
         self.max_gap = float(max_gap)
-        self.wrap = bool(wrap)
-        self._p_min = mit.p_min
-        self._p_step = (mit.p_max - mit.p_min) / 65535.0
-        v_code = (mit.v_max - mit.v_min) / 4095.0
+        #: The field wraps (else it saturates at its end codes: the reading says no more).
+        self.wrap = bool(wrap) and not codes.saturates
+        self._p_min = codes.p_zero
+        self._p_step = codes.p_step
+        self._n = codes.p_codes                 # codes per wrap
+        self._top = codes.p_codes - 1           # the field's last code
+        # A field without speed codes: MIT's two 12-bit codes (0.05 rad/s) judge stuck.
+        v_code = codes.v_step if codes.v_step > 0.0 else MIT_V_CODE
         self._stuck_speed = STUCK_MIN_SPEED_CODES * v_code
-        self._judged_speed = SPEED_FIELD_SHARE * min(-mit.v_min, mit.v_max)
-        self._v_half = 0.5 * (mit.v_max - mit.v_min) / 4095.0 if centre_codes else 0.0
-        self._p_half = 0.5 * self._p_step if centre_codes else 0.0
+        self._judged_speed = SPEED_FIELD_SHARE * protocol.speed_range
+        centre = centre_codes and codes.truncates
+        self._v_half = 0.5 * codes.v_step if centre else 0.0
+        self._p_half = 0.5 * self._p_step if centre else 0.0
         self._p_zero = self._p_min + self._p_half   # the position of code 0 [rad]
+        self._field = (self._p_min, self._p_step, self._top, self._n, 0.5 * self._n)
         self.reset()
 
     def reset(self) -> None:
         """Forget everything (e.g. after a motor reboot): the next reply starts afresh."""
         self._code: Optional[int] = None    # last position code
-        self._turns = 0                     # whole wraps of 65536 codes
+        self._turns = 0                     # whole wraps of the field (_n codes each)
         self._pos = 0.0                     # unwrapped motor position [rad]
         self._x_hat = 0.0                   # the blend's position [rad]
         self._speed = 0.0                   # motor speed estimate [rad/s]
@@ -186,8 +208,10 @@ class WheelState:
                 or stamp < self._stamp:
             self.rejected += 1
             return False
-        p_step = self._p_step
-        code = round((position - self._p_min) / p_step)   # an int (float.__round__)
+        # One attribute for the field's figures (update runs twice a tick).
+        p_min, p_step, top, n, half = self._field
+        code = round((position - p_min) / p_step)   # an int (float.__round__)
+        at_end = code == 0 or code == top
         v_rep = velocity + self._v_half
         v_abs = abs(v_rep)
         last_code = self._code
@@ -202,18 +226,18 @@ class WheelState:
             wrap = self.wrap
             # -- tracking: the new unwrapped motor position [rad] of the code
             if wrap:
-                # Of the candidates 65536 codes apart, take the one nearest to the speed's
-                # prediction (round(off / 65536) is 0 for |off| < 32768 codes).
+                # Of the candidates n codes apart, take the one nearest to the speed's
+                # prediction (round(off / n) is 0 for |off| < n / 2 codes).
                 off = move / p_step - (code - last_code)
-                if not -32768.0 < off < 32768.0:
-                    self._turns += int(round(off / 65536.0))
-                measured = self._p_zero + (code + 65536 * self._turns) * p_step
-            elif code == 0 or code == 65535:   # at the range limit: the reading says no more
+                if not -half < off < half:
+                    self._turns += int(round(off / n))
+                measured = self._p_zero + (code + n * self._turns) * p_step
+            elif at_end:   # at the range limit: the reading says no more
                 self.saturated = True
                 measured = dead
             else:
                 self.saturated = False
-                measured = self._p_zero + (code + 65536 * self._turns) * p_step
+                measured = self._p_zero + (code + n * self._turns) * p_step
             hist = self._hist
             gap = dt > self.max_gap
             if gap:   # judge afresh from this reply
@@ -222,7 +246,6 @@ class WheelState:
             # -- the contradiction rules (sets mismatch; dead from where one began, measured
             # in the whole turns nearest dead when the position is trusted again)
             restart = False
-            at_end = code == 0 or code == 65535
             if not (wrap and at_end) or code != last_code:
                 self._end = None   # not at a range end, or at the other one (the code wrapped)
             if v_abs >= self._judged_speed:
@@ -244,7 +267,7 @@ class WheelState:
                         since = h
                 end = self._end
                 if not found and end is not None:
-                    outward = (v_int - end[2]) * (1.0 if code == 65535 else -1.0)
+                    outward = (v_int - end[2]) * (1.0 if code == top else -1.0)
                     if v_abs > self._stuck_speed and outward > MISMATCH_LIMIT \
                             + RECEIPT_JITTER * v_abs:
                         found = ('the position stuck at its range end (%+.2f rad) while the '
@@ -266,8 +289,8 @@ class WheelState:
                         and stamp - self._clean_since >= MISMATCH_WINDOW:
                     self.mismatch, restart = False, True
                     if wrap:   # the code's whole turns nearest the dead-reckoned angle
-                        self._turns += int(round((dead - measured) / (65536 * p_step)))
-                        measured = self._p_zero + (code + 65536 * self._turns) * p_step
+                        self._turns += int(round((dead - measured) / (n * p_step)))
+                        measured = self._p_zero + (code + n * self._turns) * p_step
             # -- the speed blend
             self._pos = pos = dead if self.saturated or self.mismatch else measured
             if restart or gap:
@@ -287,7 +310,7 @@ class WheelState:
         self.speed = self.direction * self._speed
         entry = (stamp, measured, self._v_int, self._pos, v_abs)
         self._hist.append(entry)
-        if (code == 0 or code == 65535) and self._end is None and self.wrap:
+        if at_end and self._end is None and self.wrap:
             self._end = entry
         return True
 
@@ -302,7 +325,7 @@ class WheelState:
         return self._pos
 
     def _position(self, code: int) -> float:
-        return self._p_zero + (code + 65536 * self._turns) * self._p_step
+        return self._p_zero + (code + self._n * self._turns) * self._p_step
 
     def reading(self, now: float) -> WheelReading:
         """Return the estimate in the wheel's convention, with the reply's age at now [s]."""

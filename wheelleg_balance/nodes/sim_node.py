@@ -6,12 +6,15 @@ sim_node: the simulated robot (sim/robot_sim.py) in real time, with the robot's 
   (``publish_joint_states``, off by default: on the robot nothing publishes them, balance_node
   reads the motors' replies); ``~/ground_truth`` (std_msgs/Float64MultiArray, field names in
   ``layout.dim[0].label``) at ``ground_truth_rate``;
-- answers MIT-mode frames on the CAN bus (``can.*``) like the motors do, through one firmware
-  emulator per motor (sim/motor_emulator.py, sim/robot_motors.py): the two wheel motors and
-  the four hip motors (``legs.*``, on the wheels' bus or on a second one,
-  ``legs.can.channel``). Enter / exit / zero (zero in rest mode only) and commands
-  tau = kp (p - q) + kd (v - q_dot) + t evaluated every physics step, applied only in motor
-  mode, clamped to the motor's t_max; one reply per received frame with the true state. Until
+- answers the motors' frames on the CAN bus (``can.*``) like the motors do, through one
+  firmware emulator per motor (sim/robot_motors.py: each its protocol's ``make_emulator``):
+  the two wheel motors (``can.protocol``) and the four hip motors (``legs.*``,
+  ``legs.can.protocol``, on the wheels' bus or on a second one, ``legs.can.channel``), any
+  registered protocol on either. The MIT motors: enter / exit / zero (zero in rest mode only)
+  and commands tau = kp (p - q) + kd (v - q_dot) + t evaluated every physics step, applied
+  only in motor mode, clamped to the motor's t_max; one reply per received frame with the
+  true state (the other protocols as their modules say; a C620 group frame is answered by
+  each ESC it carries, CyberGear frames are extended). Until
   balance_node drives them the hips are limp: the robot starts as after power-up
   (``initial_pose: folded``), legs folded onto their stops, resting on its tail;
 - publishes ``/clock`` (rosgraph_msgs/Clock, the simulated time, 100 Hz) for nodes with
@@ -53,6 +56,7 @@ bursts: when the wait or the CPU makes it late it simply runs slower than real t
 (``real_time_factor``). The closed loop is then the same on a loaded machine as on an idle one
 (docs/simulation.md).
 """
+from collections import Counter
 import sys
 import threading
 import time
@@ -69,14 +73,14 @@ from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
 from . import lean
-from .can_io import open_bus
+from .can_io import hands_back_own_frames, open_bus
 from .dds import apply_udp_only
 from .params import load
 from ..core.deadline import DeadlineLoop
 from ..core.protocols.base import Frame
 from ..core.schema import to_flat
 from ..optional import MissingDependency
-from ..sim.config import mit_protocol, SimConfig
+from ..sim.config import motor_protocol, SimConfig
 from ..sim.layout import WHEEL_JOINTS
 
 try:
@@ -115,13 +119,13 @@ class SimNode(Node):
         self.sim.reset(cfg.initial_pose, pitch=cfg.initial_pitch, lift=cfg.stand_lift)
 
         c, legs, fw = cfg.can, cfg.legs, cfg.can.firmware
-        self.protocol = mit_protocol(c.mit, c.master_id)
+        self.protocol = motor_protocol(c, c.master_id)
         self.directions = (c.left_direction, c.right_direction)
         specs = default_specs(
             (c.left_motor_id, c.right_motor_id), self.directions, tuple(legs.motor_ids),
             tuple(legs.directions), tuple(legs.offsets), hip_bus=1 if cfg.second_bus else 0)
         self.motors = RobotMotors(
-            self.sim, specs, self.protocol, mit_protocol(legs.mit, c.master_id),
+            self.sim, specs, self.protocol, motor_protocol(legs, c.master_id),
             gear_ratio=legs.gear_ratio, command_timeout=fw.command_timeout,
             timeout_action=fw.timeout_action, wrap=fw.wrap,
             reply_temperature=fw.reply_temperature, power_up=legs.power_up)
@@ -325,6 +329,9 @@ class SimNode(Node):
 
     def _can_loop(self, index: int) -> None:
         bus = self.buses[index]
+        # Our own replies, where the bus hands them back (udp_multicast): a motor never hears
+        # its own frames, and an LK motor's echo of run (0x88) is that command again.
+        own: Optional[Counter] = Counter() if hands_back_own_frames(bus) else None
         while not self._stop.is_set():
             try:
                 msg = bus.recv(timeout=0.05)
@@ -334,20 +341,30 @@ class SimNode(Node):
                 continue
             if msg is None or msg.is_error_frame or msg.is_remote_frame:
                 continue
+            if own:
+                key = (msg.arbitration_id, bytes(msg.data), msg.is_extended_id)
+                if own[key] > 0:
+                    own[key] -= 1
+                    if not own[key]:
+                        del own[key]
+                    continue
             # None: another node's frame, our own reply, or not a command frame.
             with self._commands:
-                reply = self.motors.handle(
+                replies = self.motors.replies(
                     Frame(msg.arbitration_id, bytes(msg.data), msg.is_extended_id), index)
                 self._commands.notify()
-            if reply is None:
+            if not replies:
                 continue
             self.can_frames += 1
-            try:
-                bus.send(can.Message(arbitration_id=reply.arbitration_id,
-                                     data=reply.data, is_extended_id=False), timeout=0.01)
-                self.can_replies += 1
-            except (can.CanError, OSError, ValueError):
-                self.can_errors += 1
+            for reply in replies:   # a C620 group frame: one per ESC it carries
+                try:
+                    bus.send(can.Message(arbitration_id=reply.arbitration_id, data=reply.data,
+                                         is_extended_id=reply.is_extended_id), timeout=0.01)
+                    self.can_replies += 1
+                    if own is not None:
+                        own[(reply.arbitration_id, bytes(reply.data), reply.is_extended_id)] += 1
+                except (can.CanError, OSError, ValueError):
+                    self.can_errors += 1
 
 
 def main(args=None) -> None:

@@ -6,16 +6,21 @@ node declares its parameters with descriptors from it (nodes/params.load), confi
 checked against it by the tests, and the simulated robot and its motors are built from it. The
 prefixes give the ROS names of docs/simulation.md (``can.mit.t_max``, ``legs.motor_ids``,
 ``slope.angle``, ``fault.miswired_motor_id``). Every parameter is read-only: the scenario is set
-at start. The MIT ranges are balance_node's section (core/motor_config.MitLimits), so both sides
-build their codec the same way (``mit_protocol``); the firmware options beside them are the
-emulator's (sim/motor_emulator.py). No MuJoCo here: a configuration is checked without it.
+at start. The wheels and the hips each name their protocol (``can.protocol``,
+``legs.can.protocol``: any registered one) and its figures are balance_node's sections
+(core/motor_config.py: ``can.mit``, ``can.lk``, ``can.dji``, ``legs.damiao`` ...), so both
+sides build their codec the same way (``motor_protocol``); each motor is that codec's emulator,
+with that model's limits. The firmware options under ``can.mit`` are the emulators' that take
+them (sim/robot_motors.make_emulator). No MuJoCo here: a configuration is checked without it.
 """
 from dataclasses import dataclass
 import math
 from typing import List
 
 from .layout import HIP_TORQUE_LIMIT, LEG_JOINTS, WHEEL_TORQUE_LIMIT
-from ..core.motor_config import MitLimits
+from ..core.motor_config import (DjiConfig, HIP_PROTOCOL_NAMES, MitLimits, PROTOCOL_NAMES)
+from ..core.protocols import (CybergearConfig, DamiaoConfig, LkConfig, MotorProtocol,
+                              protocol_for)
 from ..core.protocols.emulation import TIMEOUT_ACTIONS
 from ..core.protocols.mit import MitProtocol
 from ..core.schema import param, section
@@ -46,12 +51,14 @@ class SlopeConfig:
 
 @dataclass(frozen=True)
 class MitFirmwareConfig:
-    """The MIT motors' firmware options (all motors; sim/motor_emulator.MitMotorEmulator)."""
+    """The motors' firmware options (all motors whose emulator takes them; MIT's all)."""
 
-    wrap: bool = param(True, 'reply fields beyond their range wrap around, as the bgkatz and '
-                       'CubeMars firmware send them; false: clamped', read_only=RO)
+    wrap: bool = param(True, 'MIT and DaMiao: reply fields beyond their range wrap around, as '
+                       'the bgkatz and CubeMars firmware send them; false: clamped',
+                       read_only=RO)
     command_timeout: float = param(0.0, 'all motors: no command for this long in motor mode '
-                                   'fires the timeout [s] (0: none)', 0.0, 10.0, read_only=RO)
+                                   "fires the timeout [s] (0: each emulator's own default, "
+                                   'none for all of them)', 0.0, 10.0, read_only=RO)
     timeout_action: str = param('zero', "what a timeout does: 'zero' (the command is zeroed, "
                                 "as bgkatz CAN_TIMEOUT) or 'rest' (rest mode)", read_only=RO,
                                 choices=TIMEOUT_ACTIONS)
@@ -69,22 +76,27 @@ class SimCanConfig:
                          read_only=RO)
     udp_port: int = param(43113, 'UDP port of the udp_multicast interface', 1, 65535,
                           read_only=RO)
-    protocol: str = param('mit', 'motor protocol; only mit is simulated', read_only=RO,
-                          choices=('mit',))
+    protocol: str = param('mit', 'wheel motor protocol: %s (its figures in can.<section>)'
+                          % ' | '.join(PROTOCOL_NAMES), read_only=RO, choices=PROTOCOL_NAMES)
     left_motor_id: int = param(1, 'CAN ID of the left wheel motor', 1, 2047, read_only=RO)
     right_motor_id: int = param(2, 'CAN ID of the right wheel motor', 1, 2047, read_only=RO)
     left_direction: int = _direction(1, '+1 when a positive torque of the left motor drives '
                                      'the wheel forward, else -1')
     right_direction: int = _direction(-1, '+1 when a positive torque of the right motor '
                                       'drives the wheel forward, else -1')
-    master_id: int = param(0, 'standard ID the motors reply on', 0, 2047, read_only=RO)
+    master_id: int = param(0, 'MIT motors: the standard ID they reply on', 0, 2047,
+                           read_only=RO)
     mit: MitLimits = section(MitLimits, 'mit')
     firmware: MitFirmwareConfig = section(MitFirmwareConfig, 'mit')
+    dji: DjiConfig = section(DjiConfig, 'dji')
+    lk: LkConfig = section(LkConfig, 'lk')
+    cybergear: CybergearConfig = section(CybergearConfig, 'cybergear')
+    damiao: DamiaoConfig = section(DamiaoConfig, 'damiao')
 
 
 @dataclass(frozen=True)
 class LegsConfig:
-    """The four hip motors (MIT, on CAN): left front, left rear, right front, right rear."""
+    """The four hip motors on CAN: left front, left rear, right front, right rear."""
 
     motor_ids: List[int] = param([3, 4, 5, 6], 'CAN IDs of the hip motors: left front, left '
                                  'rear, right front, right rear', 1, 2047, read_only=RO,
@@ -98,12 +110,18 @@ class LegsConfig:
     can_channel: str = param('', "channel of a second CAN bus for the hip motors ('' = the "
                              "wheels' bus; same interface and udp_port)", read_only=RO,
                              name='legs.can.channel')
-    gear_ratio: float = param(9.0, 'hip motor gear ratio (what one rotor turn is at the '
-                              'output: 2 pi / ratio)', 1.0, 100.0, read_only=RO)
+    gear_ratio: float = param(9.0, 'MIT hip motor gear ratio (what one rotor turn is at the '
+                              "output: 2 pi / ratio; other protocols: their section's)", 1.0,
+                              100.0, read_only=RO)
     power_up: bool = param(True, 'hip motors start as after a power-up: the reading is known '
                            'only modulo one rotor turn (homing needed); false: exact',
                            read_only=RO)
+    protocol: str = param('mit', 'hip motor protocol: %s (its figures in legs.<section>)'
+                          % ' | '.join(HIP_PROTOCOL_NAMES), read_only=RO,
+                          choices=HIP_PROTOCOL_NAMES, name='legs.can.protocol')
     mit: MitLimits = section(MitLimits, 'mit')
+    cybergear: CybergearConfig = section(CybergearConfig, 'cybergear')
+    damiao: DamiaoConfig = section(DamiaoConfig, 'damiao')
 
 
 @dataclass(frozen=True)
@@ -249,14 +267,34 @@ class SimConfig:
             out.append('fault.miswired_motor_id %d is none of the motors %s' % (miswired, ids))
         if len(self.pushes) % 4:
             out.append('pushes needs groups of 4 [start, duration, force_x, force_y]')
-        for name, mit, limit in (('can.mit', self.can.mit, WHEEL_TORQUE_LIMIT),
-                                 ('legs.mit', self.legs.mit, HIP_TORQUE_LIMIT)):
-            if mit.t_max > limit:
-                out.append("%s.t_max %.1f N m above the model's actuators (%.0f N m)"
-                           % (name, mit.t_max, limit))
+        for name, owner, limit in (('can', self.can, WHEEL_TORQUE_LIMIT),
+                                   ('legs', self.legs, HIP_TORQUE_LIMIT)):
+            try:
+                codec = motor_protocol(owner)
+            except ValueError as e:
+                out.append('%s.%s figures: %s' % (name, owner.protocol, e))
+                continue
+            if codec.torque_limit > limit:
+                # The figure that sets it: the range (t_max) or the current (LK, the C620).
+                field = 't_max' if hasattr(codec, 't_max') else 'current_limit'
+                out.append("%s.%s.%s: the %s motors' torque limit %.1f N m above the model's "
+                           'actuators (%.0f N m)' % (name, codec.config_section, field,
+                                                     owner.protocol, codec.torque_limit, limit))
         return out
 
 
 def mit_protocol(limits: MitLimits, master_id: int = 0) -> MitProtocol:
     """Return the MIT codec of a motor model's ranges, replies on ``master_id``."""
     return MitProtocol(**limits.codec_ranges(), master_id=master_id)
+
+
+def motor_protocol(owner, master_id: int = 0) -> MotorProtocol:
+    """
+    Return the codec of a motor set (``can`` or ``legs``) from its protocol's section.
+
+    As balance_node builds it (core/protocols protocol_for); MIT motors reply on master_id
+    (``can.master_id``, a firmware option of the simulated ones).
+    """
+    if owner.protocol == MitProtocol.name:
+        return mit_protocol(owner.mit, master_id)
+    return protocol_for(owner.protocol, owner)

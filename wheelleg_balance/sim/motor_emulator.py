@@ -6,10 +6,12 @@ sim_node), the fault suite, the benchmark and the node tests answer CAN frames t
 ``MitMotorEmulator`` is one MIT motor; ``MitMotorBank`` a set of them without a simulator (each
 joint held at an angle and speed the caller sets), what the fault suite, the benchmark and the
 node tests put on their buses; ``DjiC620Emulator`` the other protocol's ESCs (at the end).
+``MitMotorEmulator`` itself lives in core/protocols/mit.py, the MIT codec's emulator
+(``make_emulator``), as every protocol's does; this docstring describes it.
 
-The MIT motor follows
-bgkatz/motorcontrol, the mini-cheetah motor firmware whose MIT mode CubeMars AK motors speak
-(file references below are to that repository; docs/simulation.md has the table):
+The MIT motor follows bgkatz/motorcontrol, the mini-cheetah motor firmware whose MIT mode
+CubeMars AK motors speak (file references below are to that repository; docs/simulation.md
+has the table):
 
 - power-up in rest mode: no torque. ``FF..FC`` enters motor mode with an empty command (zero
   torque until the first command), ``FF..FD`` goes back to rest, ``FF..FE`` makes the present
@@ -44,91 +46,12 @@ bgkatz/motorcontrol, the mini-cheetah motor firmware whose MIT mode CubeMars AK 
 Conventions: q, q_dot, and the torque returned are the *joint's* (the physics side); the
 motor's direction (+1 or -1) maps them: motor position = direction q - zero.
 """
-import math
 from typing import Dict, Iterable, List, Mapping, Optional, Tuple
 
 from ..core.protocols.base import Frame
-from ..core.protocols.dji import (CURRENT_CODE_MAX, CURRENT_MAX, DjiC620Protocol,
-                                  ENCODER_COUNTS)
-from ..core.protocols.emulation import EmulatedMotor, rotor_turn_position
-from ..core.protocols.mit import MitProtocol
-
-#: Rotor angle window of the first encoder sample after power-up [rad] (position_sensor.c).
-POWER_UP_WINDOW = (-1.5 * math.pi, 0.5 * math.pi)
-
-
-class MitMotorEmulator(EmulatedMotor):
-    """
-    One MIT motor (see the module docstring); the shared state is EmulatedMotor's.
-
-    motor_id: its standard CAN ID; protocol: the MIT ranges it was built with (default
-    MitProtocol(), the AK80-9 class); torque_limit [N m]: what the motor can give (default the
-    protocol's t_max); gear_ratio: rotor turns per output turn (for reboot); direction: +1 or
-    -1, motor shaft relative to the joint; command_timeout [s], 0 = none; timeout_action:
-    'zero' or 'rest'; wrap: reply fields beyond their range wrap (firmware) or clamp;
-    reply_temperature: 8-byte replies with temperature [deg C] and error code.
-    """
-
-    def __init__(self, motor_id: int, protocol: Optional[MitProtocol] = None,
-                 torque_limit: Optional[float] = None, gear_ratio: float = 9.0,
-                 direction: int = 1, command_timeout: float = 0.0,
-                 timeout_action: str = 'zero', wrap: bool = True,
-                 reply_temperature: bool = False, temperature: float = 25.0):
-        self.protocol = protocol if protocol is not None else MitProtocol()
-        super().__init__(motor_id, self.protocol.t_max if torque_limit is None else torque_limit,
-                         gear_ratio, direction, command_timeout, timeout_action, temperature)
-        self.wrap = bool(wrap)
-        self.reply_temperature = bool(reply_temperature)
-
-    def handle(self, frame: Frame, q: float, q_dot: float, now: float) -> Optional[Frame]:
-        """
-        Act on a frame as the firmware does and return the reply, or None if not for this motor.
-
-        q [rad], q_dot [rad/s]: the joint's state now; now [s]: the motor's clock (for the
-        command timeout). Frames with another ID or that are not 8-byte standard frames get no
-        reply.
-        """
-        if frame.arbitration_id != self.motor_id:
-            return None
-        decoded = self.protocol.decode_command(frame)
-        if decoded is None:
-            return None
-        self.frames += 1
-        self.last_decoded = decoded
-        if decoded == 'enter':
-            self.set_enabled(True, now)   # from zero torque, not a stale command
-        elif decoded == 'exit':
-            self.enabled = False
-            self.command = None
-        elif decoded == 'zero':
-            if not self.enabled:
-                self.set_zero_here(q)
-        else:
-            self.set_command(decoded, now)
-        self.torque(q, q_dot, now)
-        return self.protocol.encode_reply(
-            self.own_reply_id, self.position(q), self.velocity(q_dot), self.motor_torque,
-            temperature=self.temperature if self.reply_temperature else None,
-            error=self.error, wrap=self.wrap)
-
-    def power_up_position(self, position: float) -> float:
-        """
-        Return the reading after power-up: the position modulo one rotor turn.
-
-        The rotor angle from the stored zero, wrapped into POWER_UP_WINDOW, over the gear
-        ratio; the stored zero itself is kept.
-        """
-        return rotor_turn_position(position, self.gear_ratio, POWER_UP_WINDOW)
-
-    def set_error(self, code: int) -> None:
-        """
-        Set the error code reported in 8-byte replies (0 = none); the output is off until 0.
-
-        CubeMars AK codes (neurobionics/TMotorCANControl mit_can.py ERROR_CODES): 1
-        over-temperature, 2 over-current, 3 over-voltage, 4 under-voltage, 5 encoder fault,
-        6 phase current unbalance.
-        """
-        self.error = int(code) & 0xFF
+from ..core.protocols.dji import CURRENT_CODE_MAX, CURRENT_MAX, DjiC620Protocol
+# The MIT motor is its protocol's emulator (MitProtocol.make_emulator); here for the callers.
+from ..core.protocols.mit import MitMotorEmulator, MitProtocol, POWER_UP_WINDOW  # noqa: F401
 
 
 class MitMotorBank:
@@ -211,7 +134,6 @@ class DjiC620Emulator:
         codes = self.protocol.decode_command(frame)
         if codes is None:
             return []
-        ratio = self.protocol.gear_ratio
         out = []
         for esc_id, code in codes.items():
             if esc_id not in self.currents:
@@ -219,9 +141,7 @@ class DjiC620Emulator:
             self.currents[esc_id] = code
             if esc_id in self.silent:
                 continue
-            position, velocity = (x if math.isfinite(x) else 0.0 for x in self.state[esc_id])
-            angle = round(position * ratio * ENCODER_COUNTS / (2.0 * math.pi))
-            rpm = round(velocity * ratio * 60.0 / (2.0 * math.pi))
-            out.append(self.protocol.encode_feedback(esc_id, angle, rpm, code,
-                                                     self.temperature))
+            position, velocity = self.state[esc_id]
+            out.append(self.protocol.encode_state(esc_id, position, velocity, code,
+                                                  self.temperature))
         return out

@@ -16,6 +16,7 @@ from typing import Callable, Dict, List, Optional
 
 from ..core.balance_loop import BalanceLoop, CmdHeight, CmdVel, TickInputs
 from ..core.config import BalanceConfig
+from ..core.protocols import protocol_for
 from ..core.schema import check, from_flat
 from ..core.sensors import ImuSample
 from ..sim.robot_motors import default_specs, RobotMotors
@@ -53,8 +54,10 @@ class Lockstep:
         lc, can = cfg.legs, cfg.can
         self.motors = RobotMotors(self.sim, default_specs(
             (can.left_motor_id, can.right_motor_id), (can.left_direction, can.right_direction),
-            tuple(lc.motor_ids), tuple(lc.directions), tuple(lc.offsets), hips=driven),
-            power_up=power_up)
+            tuple(lc.motor_ids), tuple(lc.directions), tuple(lc.offsets), hips=driven,
+            hip_bus=1 if lc.channel and lc.channel != can.channel else 0),
+            protocol_for(can.protocol, can), protocol_for(lc.protocol, lc), power_up=power_up)
+        self._leg_bus = 1 if lc.channel and lc.channel != can.channel else 0
         self.period = cfg.loop.control_period
         self.t = 0.0
         #: When balancing began in a play (``play_experiment``) [s].
@@ -79,9 +82,11 @@ class Lockstep:
         result = self.loop.tick(t, self.inputs)
         self.inputs.clear()
         self.loop.report_send(t, None)
-        self._replies = [r for r in (self.motors.handle(f) for f in
-                                     result.frames + result.leg_frames
-                                     ) if r is not None and r.data[0] not in self.silent]
+        motors, legs = self.motors, self._leg_bus
+        self._replies = [r for f in result.frames for r in motors.replies(f)] + [
+            r for f in result.leg_frames for r in motors.replies(f, legs)]
+        if self.silent:   # MIT replies name their motor in byte 0
+            self._replies = [r for r in self._replies if r.data[0] not in self.silent]
         if result.arm_reply is not None:
             self.arm_replies.append(result.arm_reply)
         self.events += result.events

@@ -4,9 +4,9 @@ The interface every CAN motor protocol implements (pure bytes: no python-can her
 A protocol turns wheel-motor torques into CAN frames and motor replies into MotorFeedback.
 The node wraps ``Frame`` into ``can.Message`` and back; the controllers never see a protocol.
 Beside the frames, a protocol answers what the rest of the package would otherwise branch on
-(``frames_per_tick``, ``position_span`` and ``position_saturates``, ``speed_range``,
-``error_reason``, ``clear_error_frames``, ``set_zero_frames``, ``make_emulator``,
-``from_config``): see docs/can_protocols.md.
+(``frames_per_tick``, ``position_span`` and ``position_saturates``, ``reply_codes``,
+``speed_range``, ``error_reason``, ``clear_error_frames``, ``set_zero_frames``,
+``make_emulator``, ``from_config``): see docs/can_protocols.md.
 Torques are motor torques [N m] with the mounting direction already applied
 (core/actuation.py); positions [rad] and velocities [rad/s] are at the motor's output shaft.
 """
@@ -25,6 +25,29 @@ class Frame(NamedTuple):
     arbitration_id: int
     data: bytes
     is_extended_id: bool = False
+
+
+class ReplyCodes(NamedTuple):
+    """
+    How a reply codes the position and speed (core/wheel_state.py unwraps from this).
+
+    p_zero [rad]: the position of code 0; p_step [rad]: one position code; p_codes: the
+    codes of the field (it wraps every p_codes codes, or with saturates sticks at codes 0 and
+    p_codes - 1); v_step [rad/s]: one speed code (0: not quantized); truncates: the firmware
+    truncates to the code below (so a host reads a field at its code's centre).
+    """
+
+    p_zero: float
+    p_step: float
+    p_codes: int
+    saturates: bool
+    v_step: float
+    truncates: bool
+
+
+#: What reply_codes says of a position field that neither wraps nor ends: 2^52 codes of
+#: 1 urad (4.5e9 rad) with code 0 far below any reading.
+_ENDLESS_CODES = 1 << 52
 
 
 class MotorFeedback(NamedTuple):
@@ -89,6 +112,20 @@ class MotorProtocol(ABC):
         if not self.position_saturates and 0.0 < span < math.inf:
             d = (d + 0.5 * span) % span - 0.5 * span
         return d
+
+    def reply_codes(self) -> ReplyCodes:
+        """
+        Return how the reply codes position and speed (core/wheel_state.py).
+
+        Default from position_span: 65536 codes over it from 0 (wrapping, or saturating with
+        position_saturates); an endless field where the span is inf. A protocol with its own
+        code layout says it exactly.
+        """
+        span = self.position_span
+        if 0.0 < span < math.inf:
+            return ReplyCodes(0.0, span / 65536, 65536, bool(self.position_saturates), 0.0,
+                              False)
+        return ReplyCodes(-0.5e-6 * _ENDLESS_CODES, 1e-6, _ENDLESS_CODES, False, 0.0, False)
 
     def at_position_end(self, position: float) -> bool:
         """Tell whether a saturating position field reads one of its ends (position unknown)."""
@@ -206,10 +243,5 @@ def frame_bytes(frame: Frame, extended: bool = False) -> Optional[bytes]:
             return None
         data = bytes(frame.data)
         return data if len(data) <= 8 else None
-    except (AttributeError, TypeError, ValueError):
-        return None
-        if isinstance(frame.data, int):  # bytes(n) would make n zero bytes
-            return None
-        return bytes(frame.data)
     except (AttributeError, TypeError, ValueError):
         return None

@@ -29,7 +29,7 @@ import math
 import struct
 from typing import Dict, Iterable, List, Optional, Tuple
 
-from .base import Frame, frame_bytes, MotorFeedback, MotorProtocol
+from .base import Frame, frame_bytes, MotorFeedback, MotorProtocol, ReplyCodes
 from .emulation import Command, EmulatedMotor, rotor_turn_position
 from ..schema import param
 
@@ -151,6 +151,11 @@ class CybergearProtocol(MotorProtocol):
     def speed_range(self) -> float:
         """Return the largest speed [rad/s] the feedback's field holds."""
         return self.v_max
+
+    def reply_codes(self) -> ReplyCodes:
+        """Return the 16-bit angle over +-p_max that saturates, 16-bit speed, both truncated."""
+        return ReplyCodes(-self.p_max, 2.0 * self.p_max / 65535, 65536, True,
+                          2.0 * self.v_max / 65535, True)
 
     def at_position_end(self, position: float) -> bool:
         """Tell whether an angle reading is within one code of an end (it saturated there)."""

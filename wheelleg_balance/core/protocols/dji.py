@@ -19,7 +19,8 @@ import math
 import struct
 from typing import Dict, Iterable, List, Optional, Tuple
 
-from .base import Frame, frame_bytes, MotorFeedback, MotorProtocol
+from .base import Frame, frame_bytes, MotorFeedback, MotorProtocol, ReplyCodes
+from .emulation import EmulatedMotor, torque_only
 
 #: Command IDs: ESC IDs 1-4 and 5-8.
 COMMAND_ID_1_4 = 0x200
@@ -81,6 +82,11 @@ class DjiC620Protocol(MotorProtocol):
     def speed_range(self) -> float:
         """Return the largest speed [rad/s] the feedback's int16 rpm field holds."""
         return 32767 * 2.0 * math.pi / 60.0 / self.gear_ratio
+
+    def reply_codes(self) -> ReplyCodes:
+        """Return the rotor angle from 0, wrapping each rotor turn, and 1 rpm speed codes."""
+        return ReplyCodes(0.0, self.position_span / ENCODER_COUNTS, ENCODER_COUNTS, False,
+                          2.0 * math.pi / 60.0 / self.gear_ratio, False)
 
     def id_problems(self, motor_ids: Iterable[int]) -> List[str]:
         """Return the IDs outside the ESC IDs 1..8."""
@@ -185,6 +191,56 @@ class DjiC620Protocol(MotorProtocol):
         fields = (angle_code % ENCODER_COUNTS, _clamp(rpm, -32768, 32767),
                   _clamp(current_code, -32768, 32767), _clamp(temperature, 0, 255))
         return Frame(FEEDBACK_BASE_ID + esc_id, _FEEDBACK.pack(*fields))
+
+    def encode_state(self, esc_id: int, position: float, velocity: float, current_code: int,
+                     temperature: int) -> Frame:
+        """Encode the feedback of an output at position [rad] and speed [rad/s] (rounded)."""
+        ratio = self.gear_ratio
+        position, velocity = (x if math.isfinite(x) else 0.0 for x in (position, velocity))
+        return self.encode_feedback(esc_id,
+                                    round(position * ratio * ENCODER_COUNTS / (2.0 * math.pi)),
+                                    round(velocity * ratio * 60.0 / (2.0 * math.pi)),
+                                    current_code, temperature)
+
+    def make_emulator(self, motor_id: int, **options) -> 'C620MotorEmulator':
+        """Return one emulated C620 with its M3508 (C620MotorEmulator's options)."""
+        return C620MotorEmulator(motor_id, self, **options)
+
+
+class C620MotorEmulator(EmulatedMotor):
+    """
+    One C620 ESC with its M3508 P19: takes current from power-up (the ESC has no motor mode).
+
+    Each group frame (0x200 / 0x1FF) that carries its ESC ID sets its current and is answered
+    with its feedback (the real ESC sends feedback at 1 kHz on its own; one per command is
+    what a host ticking at 500 Hz sees of it). The torque current reported is the commanded
+    one (the ESC's current loop settled within a tick). The user guide documents no command
+    timeout (command_timeout 0 by default: the ESC keeps the last current). The rotor encoder
+    is single-turn: a reboot leaves the reading within one rotor turn, as it was.
+    """
+
+    def __init__(self, motor_id: int, protocol: Optional[DjiC620Protocol] = None,
+                 torque_limit: Optional[float] = None, **options):
+        self.protocol = protocol if protocol is not None else DjiC620Protocol()
+        options.setdefault('gear_ratio', self.protocol.gear_ratio)
+        super().__init__(motor_id, self.protocol.torque_limit if torque_limit is None
+                         else torque_limit, powered_enabled=True, **options)
+
+    def handle(self, frame: Frame, q: float, q_dot: float, now: float) -> Optional[Frame]:
+        """Act on a group frame carrying this ESC as it does; return its feedback or None."""
+        p = self.protocol
+        codes = p.decode_command(frame)
+        if codes is None or self.motor_id not in codes:
+            return None
+        code = codes[self.motor_id]
+        self.frames += 1
+        self.last_decoded = code
+        amps_per_code = CURRENT_MAX / CURRENT_CODE_MAX
+        self.set_command(torque_only(code * amps_per_code * p.torque_constant), now)
+        self.torque(q, q_dot, now)
+        current = round(self.motor_torque / p.torque_constant / amps_per_code)
+        return p.encode_state(self.own_reply_id, self.position(q), self.velocity(q_dot), current,
+                              int(self.temperature))
 
 
 def _clamp(x: int, lo: int, hi: int) -> int:

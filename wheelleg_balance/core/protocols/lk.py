@@ -28,7 +28,7 @@ import math
 import struct
 from typing import Dict, Iterable, List, NamedTuple, Optional, Tuple, Union
 
-from .base import Frame, frame_bytes, MotorFeedback, MotorProtocol
+from .base import Frame, frame_bytes, MotorFeedback, MotorProtocol, ReplyCodes
 from .emulation import EmulatedMotor, torque_only
 from ..schema import param
 
@@ -132,6 +132,11 @@ class LkProtocol(MotorProtocol):
     def torque_limit(self) -> float:
         """Return the largest torque [N m] a command asks for (current_limit)."""
         return self._code_limit * self._nm_per_code
+
+    def reply_codes(self) -> ReplyCodes:
+        """Return the single-turn encoder from 0, wrapping each turn, and 1 deg/s codes."""
+        return ReplyCodes(0.0, self.position_span / self.encoder_counts, self.encoder_counts,
+                          False, math.radians(1.0) / self.gear_ratio, False)
 
     def id_problems(self, motor_ids: Iterable[int]) -> List[str]:
         """Return the IDs outside 1..32 (ID 0x140 + ID)."""

@@ -18,7 +18,9 @@ robot, the motor (decode_command, encode_reply). Per-tick encoding is int math a
 import math
 from typing import Dict, Iterable, List, NamedTuple, Optional, Tuple, Union
 
-from .base import Frame, frame_bytes, MAX_STANDARD_ID, MotorFeedback, MotorProtocol
+from .base import (Frame, frame_bytes, MAX_STANDARD_ID, MotorFeedback, MotorProtocol,
+                   ReplyCodes)
+from .emulation import EmulatedMotor, rotor_turn_position
 
 ENTER_MOTOR_MODE = bytes((0xFF,) * 7 + (0xFC,))
 EXIT_MOTOR_MODE = bytes((0xFF,) * 7 + (0xFD,))
@@ -146,6 +148,15 @@ class MitProtocol(MotorProtocol):
     def speed_range(self) -> float:
         """Return the largest speed [rad/s] the reply's velocity field holds."""
         return min(-self.v_min, self.v_max)
+
+    def make_emulator(self, motor_id: int, **options) -> 'MitMotorEmulator':
+        """Return an emulated MIT motor with this codec (MitMotorEmulator's options)."""
+        return MitMotorEmulator(motor_id, self, **options)
+
+    def reply_codes(self) -> ReplyCodes:
+        """Return the 16-bit position wrapping every 65536 codes, the 12-bit speed: truncated."""
+        return ReplyCodes(self.p_min, (self.p_max - self.p_min) / 65535.0, 65536, False,
+                          (self.v_max - self.v_min) / 4095.0, True)
 
     def error_reason(self, code: int) -> str:
         """Return the meaning of an 8-byte reply's error code (CubeMars AK firmware)."""
@@ -379,3 +390,83 @@ def _gain_code(x: float, x_max: float) -> int:
 def _finite(x: float) -> float:
     """Return x if it is a finite number, else 0.0."""
     return x if math.isfinite(x) else 0.0
+
+
+#: Rotor angle window of the first encoder sample after power-up [rad] (position_sensor.c).
+POWER_UP_WINDOW = (-1.5 * math.pi, 0.5 * math.pi)
+
+
+class MitMotorEmulator(EmulatedMotor):
+    """
+    One MIT motor as sim/motor_emulator.py's docstring describes (bgkatz/motorcontrol).
+
+    The state it shares with every protocol's emulator is EmulatedMotor's.
+
+    motor_id: its standard CAN ID; protocol: the MIT ranges it was built with (default
+    MitProtocol(), the AK80-9 class); torque_limit [N m]: what the motor can give (default the
+    protocol's t_max); gear_ratio: rotor turns per output turn (for reboot); direction: +1 or
+    -1, motor shaft relative to the joint; command_timeout [s], 0 = none; timeout_action:
+    'zero' or 'rest'; wrap: reply fields beyond their range wrap (firmware) or clamp;
+    reply_temperature: 8-byte replies with temperature [deg C] and error code.
+    """
+
+    def __init__(self, motor_id: int, protocol: Optional[MitProtocol] = None,
+                 torque_limit: Optional[float] = None, gear_ratio: float = 9.0,
+                 direction: int = 1, command_timeout: float = 0.0,
+                 timeout_action: str = 'zero', wrap: bool = True,
+                 reply_temperature: bool = False, temperature: float = 25.0):
+        self.protocol = protocol if protocol is not None else MitProtocol()
+        super().__init__(motor_id, self.protocol.t_max if torque_limit is None else torque_limit,
+                         gear_ratio, direction, command_timeout, timeout_action, temperature)
+        self.wrap = bool(wrap)
+        self.reply_temperature = bool(reply_temperature)
+
+    def handle(self, frame: Frame, q: float, q_dot: float, now: float) -> Optional[Frame]:
+        """
+        Act on a frame as the firmware does and return the reply, or None if not for this motor.
+
+        q [rad], q_dot [rad/s]: the joint's state now; now [s]: the motor's clock (for the
+        command timeout). Frames with another ID or that are not 8-byte standard frames get no
+        reply.
+        """
+        if frame.arbitration_id != self.motor_id:
+            return None
+        decoded = self.protocol.decode_command(frame)
+        if decoded is None:
+            return None
+        self.frames += 1
+        self.last_decoded = decoded
+        if decoded == 'enter':
+            self.set_enabled(True, now)   # from zero torque, not a stale command
+        elif decoded == 'exit':
+            self.enabled = False
+            self.command = None
+        elif decoded == 'zero':
+            if not self.enabled:
+                self.set_zero_here(q)
+        else:
+            self.set_command(decoded, now)
+        self.torque(q, q_dot, now)
+        return self.protocol.encode_reply(
+            self.own_reply_id, self.position(q), self.velocity(q_dot), self.motor_torque,
+            temperature=self.temperature if self.reply_temperature else None,
+            error=self.error, wrap=self.wrap)
+
+    def power_up_position(self, position: float) -> float:
+        """
+        Return the reading after power-up: the position modulo one rotor turn.
+
+        The rotor angle from the stored zero, wrapped into POWER_UP_WINDOW, over the gear
+        ratio; the stored zero itself is kept.
+        """
+        return rotor_turn_position(position, self.gear_ratio, POWER_UP_WINDOW)
+
+    def set_error(self, code: int) -> None:
+        """
+        Set the error code reported in 8-byte replies (0 = none); the output is off until 0.
+
+        CubeMars AK codes (neurobionics/TMotorCANControl mit_can.py ERROR_CODES): 1
+        over-temperature, 2 over-current, 3 over-voltage, 4 under-voltage, 5 encoder fault,
+        6 phase current unbalance.
+        """
+        self.error = int(code) & 0xFF

@@ -16,7 +16,7 @@ import time
 from typing import List
 
 from .orchestrate import Progress, run_with_retries, RunSetup
-from .params import config_dir
+from .params import config_dir, ROBOTS
 from .plots import plot_startups
 from .record import Recorder
 from .report import write_report
@@ -44,6 +44,9 @@ def parser() -> argparse.ArgumentParser:
                         'loop was starved of CPU, at most this many times (default 1)')
     p.add_argument('--teleop-config', default='',
                    help='teleop_node parameter file (default: config/teleop_xbox.yaml)')
+    p.add_argument('--robot', default='', choices=[''] + list(ROBOTS),
+                   help="the simulated robot's motors (default: six MIT motors); %s" % '; '.join(
+                       '%s: %s' % kv for kv in ROBOTS.items()))
     p.add_argument('--can-group', default='', help='udp_multicast group of the CAN bus '
                    '(default: one of 239.74.0.0/16 from the process id)')
     p.add_argument('--udp-port', type=int, default=0,
@@ -61,7 +64,7 @@ def _setup(args: argparse.Namespace) -> RunSetup:
         can_group=args.can_group or '239.74.%d.%d' % ((pid >> 8) % 256, pid % 256 or 1),
         udp_port=args.udp_port or 40000 + pid % 20000,
         teleop_config=pathlib.Path(args.teleop_config) if args.teleop_config else
-        config_dir() / 'teleop_xbox.yaml')
+        config_dir() / 'teleop_xbox.yaml', robot=args.robot)
 
 
 def main(argv=None) -> int:
@@ -99,7 +102,8 @@ def main(argv=None) -> int:
             'python': platform.python_version(), 'cpus': os.cpu_count() or 0,
             'ros_domain_id': os.environ['ROS_DOMAIN_ID'], 'can_group': setup.can_group,
             'udp_port': setup.udp_port, 'teleop_config': str(setup.teleop_config),
-            'short': args.short, 'clock': args.clock, 'experiments_run': [e.name for e in chosen]}
+            'short': args.short, 'clock': args.clock, 'robot': args.robot or 'mit',
+            'experiments_run': [e.name for e in chosen]}
     try:
         for exp in chosen:
             results.append(run_with_retries(exp, rec, setup, log, args.retries))

@@ -83,6 +83,8 @@ class RunSetup:
     #: sim_node and balance_node in lockstep (sim_node ``lockstep``, balance_node
     #: ``clock_source: imu_stamp``) rather than each on the wall clock.
     lockstep: bool = True
+    #: The simulated robot's motors (params.ROBOTS; '': six MIT motors).
+    robot: str = ''
 
 
 def _start(args: List[str], log: pathlib.Path) -> subprocess.Popen:
@@ -96,9 +98,10 @@ def start_nodes(exp: Scenario, folder: pathlib.Path,
                 setup: RunSetup) -> Tuple[Dict[str, subprocess.Popen], List[str]]:
     """Write the parameter files and start the run's nodes; returns them and the joystick lines."""
     write_params(folder / 'sim.yaml', 'sim_node',
-                 sim_params(setup.can_group, setup.udp_port, exp, setup.lockstep))
+                 sim_params(setup.can_group, setup.udp_port, exp, setup.lockstep, setup.robot))
     write_params(folder / 'balance.yaml', 'balance_node',
-                 balance_params(setup.can_group, setup.udp_port, exp, setup.lockstep))
+                 balance_params(setup.can_group, setup.udp_port, exp, setup.lockstep,
+                                setup.robot))
     procs = {
         'sim_node': _start(['wheelleg_balance.nodes.sim_node', '--ros-args', '--params-file',
                             str(folder / 'sim.yaml')], folder / 'sim_node.log'),
@@ -318,6 +321,7 @@ def run_experiment(exp: Scenario, rec: Recorder, setup: RunSetup, log: Progress)
     result['sim_node_loop'] = sim_stats(folder / 'sim_node.log')
     result['clock'] = 'lockstep' if setup.lockstep else 'wall'
     result['balance_node_loop'] = dict(rec.loop)
+    result['can_bus_load'] = rec.bus_load_summary()
     lag = trace.sim_lag() if trace is not None else 0.0
     result['after_stop'] = [f for f in rec.faults if f not in faults]
     # In lockstep a slow machine only slows the run (sim_lag, late ticks); a step without its

@@ -9,6 +9,10 @@ overrides (main_job/scenarios.py); the joystick script turns the scenario's step
 rad/s into stick deflections through teleop_node's scales and deadzone, so that teleop_node
 commands the intended x_dot* and yaw rate* (validation/paper/joy_script.py plays it), and its
 height presses into the height buttons of the same file.
+
+``robot``: the motors of another simulated robot (``ROBOTS``), laid over both files:
+config/balance_sim_<robot>.yaml and config/sim_<robot>.yaml (LK wheels and DaMiao hips, C620
+wheels and CyberGear hips, each on one bus).
 """
 import math
 import pathlib
@@ -22,6 +26,9 @@ from ..table import IMU_OFFSET
 
 #: balance_node's sensor and motor timeouts against sim_node on the wall clock [s] (default 0.05).
 SIM_SENSOR_TIMEOUT = 0.5
+#: The simulated robots' motors beside the default (six MIT motors): robot -> what it has.
+ROBOTS = {'lk_damiao': 'LK MF9025 wheels, DaMiao DM-J6006 hips, one bus',
+          'c620_cybergear': 'C620 + M3508 P19 wheels, CyberGear hips, one bus'}
 
 
 def _nested(flat: Dict[str, object]) -> dict:
@@ -42,20 +49,32 @@ def write_params(path: pathlib.Path, node: str, flat: Dict[str, object]) -> None
                                    default_flow_style=None, sort_keys=True))
 
 
-def installed(name: str, node: str) -> Dict[str, object]:
-    """Return a node's parameters from a file of the config folder, by dotted name."""
+def installed(name: str, node: str, robot: str = '') -> Dict[str, object]:
+    """
+    Return a node's parameters from a file of the config folder, by dotted name.
+
+    robot: one of ROBOTS, whose file (``name`` with ``_<robot>`` before .yaml) is laid over.
+    """
     doc = yaml.safe_load((config_dir() / name).read_text())
-    return flatten(doc[node]['ros__parameters'])
+    flat = flatten(doc[node]['ros__parameters'])
+    if robot:
+        if robot not in ROBOTS:
+            raise ValueError('no simulated robot %r (one of %s)' % (robot, ', '.join(ROBOTS)))
+        over = yaml.safe_load((config_dir() / name.replace('.yaml', '_%s.yaml' % robot))
+                              .read_text())
+        flat.update(flatten(over[node]['ros__parameters']))
+    return flat
 
 
 def balance_params(can_group: str, udp_port: int, exp: Scenario,
-                   lockstep: bool = True) -> Dict[str, object]:
+                   lockstep: bool = True, robot: str = '') -> Dict[str, object]:
     """
     balance_node parameters: config/balance_sim.yaml on this run's bus, the scenario's.
 
-    lockstep: the loop ticks on sim_node's IMU stamps (``clock_source: imu_stamp``).
+    lockstep: the loop ticks on sim_node's IMU stamps (``clock_source: imu_stamp``); robot:
+    one of ROBOTS ('' the default).
     """
-    flat = installed('balance_sim.yaml', 'balance_node')
+    flat = installed('balance_sim.yaml', 'balance_node', robot)
     flat.update({
         'controller': exp.controller,
         'can.channel': can_group, 'can.udp_port': udp_port,
@@ -81,9 +100,9 @@ def sim_time(t: float) -> float:
 
 
 def sim_params(can_group: str, udp_port: int, exp: Scenario,
-               lockstep: bool = True) -> Dict[str, object]:
-    """sim_node parameters: config/sim.yaml on this run's bus, IMU offset d, the scenario."""
-    flat = installed('sim.yaml', 'sim_node')
+               lockstep: bool = True, robot: str = '') -> Dict[str, object]:
+    """sim_node parameters: config/sim.yaml (robot's over it) on this bus, d, the scenario."""
+    flat = installed('sim.yaml', 'sim_node', robot)
     flat.update({
         'can.channel': can_group, 'can.udp_port': udp_port,
         'imu_pitch_offset': IMU_OFFSET, 'initial_pose': 'folded', 'ground_truth_rate': 100.0,

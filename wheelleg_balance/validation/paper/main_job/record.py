@@ -49,6 +49,9 @@ class Recorder:
         self.faults: List[str] = []    # balance_node's fault reasons (/diagnostics)
         self.fault_times: Dict[str, float] = {}   # reason: receipt time it was first seen
         self.loop: Dict[str, str] = {}  # balance_node's newest control-loop statistics
+        #: The loads [%] balance_node's CAN status reported of each bus (bus_load_pct,
+        #: leg_bus_load_pct with the hips on their own), and the wheels' protocol.
+        self.bus_load: Dict[str, object] = {}
         self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 10,
                                       event_callbacks=no_events)
         self.arm_client = self.node.create_client(SetBool, 'balance_node/arm')
@@ -85,10 +88,41 @@ class Recorder:
                     st.message not in self.faults:
                 self.faults.append(st.message)
                 self.fault_times[st.message] = time.monotonic()
+            elif st.name == 'balance_node: CAN':
+                self._take_bus_load(st.values)
             elif st.name == 'balance_node: control loop':
                 self.loop = {kv.key: kv.value for kv in st.values
                              if kv.key in ('overruns', 'late_share', 'period_p99_ms',
                                            'period_max_ms', 'ticks')}
+
+    def _take_bus_load(self, values) -> None:
+        for kv in values:
+            if kv.key == 'protocol':
+                self.bus_load['protocol'] = kv.value
+            elif kv.key in ('bus_load_pct', 'leg_bus_load_pct'):
+                try:
+                    load = float(kv.value)
+                except ValueError:
+                    continue
+                if load == load:   # not NaN (before a second status)
+                    self.bus_load.setdefault(kv.key, []).append(load)
+
+    def bus_load_summary(self) -> Dict[str, object]:
+        """
+        Return the wheels' protocol and each bus's median and highest load [%].
+
+        The median is the budget's figure; the highest can be one status window that a stall
+        of the simulated clock (lockstep) made short.
+        """
+        out: Dict[str, object] = {}
+        for key, value in self.bus_load.items():
+            if isinstance(value, list):
+                ordered = sorted(value)
+                out[key.replace('_pct', '_median_pct')] = ordered[len(ordered) // 2]
+                out[key.replace('_pct', '_max_pct')] = ordered[-1]
+            else:
+                out[key] = value
+        return out
 
     def start_mcap(self, path):
         """Also write every topic of the run into an MCAP file (validation/recording.py)."""
@@ -105,6 +139,7 @@ class Recorder:
     def clear(self):
         """Forget the previous run's recordings, faults and loop statistics."""
         self.gt, self.state, self.cmd, self.faults, self.loop = [], [], [], [], {}
+        self.bus_load = {}
         self.fault_times = {}
         self.height = []
 

@@ -12,6 +12,7 @@ from typing import List
 import numpy as np
 
 from .evaluate import fmt
+from .params import ROBOTS
 from ..table import DEG, IMU_OFFSET
 
 
@@ -48,7 +49,7 @@ def _head(results: List[dict], info: dict) -> List[str]:
         '%s; %s; Python %s; %d CPUs; %.0f s in all.' % (
             info['date'], info['platform'], info['python'], info['cpus'], info['elapsed_s']),
         '', 'balance_node against sim_node (MuJoCo) as separate processes: ROS 2 on localhost '
-        '(ROS_DOMAIN_ID %s), CAN over udp_multicast (%s port %d), six MIT motors (wheel states '
+        '(ROS_DOMAIN_ID %s), CAN over udp_multicast (%s port %d), %s (wheel states '
         "from the wheel motors' replies, the four hips driven by balance_node); the driving "
         'experiments through teleop_node (%s) fed by a scripted joystick (joy_script), the '
         'height through its buttons and cmd_height. Each run starts folded on the tail as after '
@@ -58,6 +59,7 @@ def _head(results: List[dict], info: dict) -> List[str]:
         'repository (only its text, Sec. V-C): the "paper" column quotes what its text reports '
         'about each figure.' % (
             info['ros_domain_id'], info['can_group'], info['udp_port'],
+            ROBOTS.get(info.get('robot', ''), 'six MIT motors'),
             info['teleop_config'], IMU_OFFSET / DEG), '',
         '## Summary', '',
         '| experiment | paper | result | criteria met | headline: this run (paper) '
@@ -107,6 +109,12 @@ def _section(r: dict, has_fig3: bool) -> List[str]:
         timing_text(r), ', sim time %.2f s behind the wall clock' % r['sim_lag_s']
         if r.get('sim_lag_s', 0.0) > 0.2 and r.get('clock') != 'lockstep' else '', ', '.join(
             '%s %s' % kv for kv in sorted(r.get('balance_node_loop', {}).items())) or '-'))
+    if r.get('can_bus_load'):
+        load = r['can_bus_load']
+        lines.append('- CAN budget: %s wheels; the loads balance_node reported (median, max '
+                     'of its statuses): %s.' % (load.get('protocol', '-'), ', '.join(
+                         '%s %.1f %%' % (k.replace('_pct', ''), v)
+                         for k, v in sorted(load.items()) if k.endswith('_pct')) or '-'))
     for d in r.get('discarded_attempts', []):
         lines.append('- an earlier attempt was discarded: %s' % d)
     for n in r['notes']:
