@@ -128,9 +128,9 @@ class MitProtocol(MotorProtocol):
         self._ranges = (self.p_min, self.p_max, self.p_max - self.p_min, self.v_min, self.v_max,
                         self.v_max - self.v_min, self.kp_max, self.kd_max, self.t_min,
                         self.t_max, self._t_span)
-        #: The newest command's kp and kd and their codes (command_frame encodes them anew
-        #: only when they change).
-        self._gain_codes = (math.nan, math.nan, 0, 0)
+        #: The newest command's kp and kd and their codes in place (command_frame encodes them
+        #: anew only when they change).
+        self._gain_codes = (math.nan, math.nan, 0)
 
     @classmethod
     def from_config(cls, section) -> 'MitProtocol':
@@ -163,27 +163,25 @@ class MitProtocol(MotorProtocol):
         special frame; keep p below p_max if you ever need such a command.)
         """
         # float_to_uint of each field, inlined and unrolled (ten hip frames a tick at most):
-        # the same operations as (clamp(x) - lo) * top / span; a non-finite value (NaN fails
-        # both comparisons) is sent as 0.
+        # the same operations as (clamp(x) - lo) * top / span. A value within its range (the
+        # usual case) costs one chained comparison; one outside is clamped, and a non-finite
+        # one (x - x is NaN for NaN and inf) is sent as 0.
         p_lo, p_hi, p_span, v_lo, v_hi, v_span, kp_hi, kd_hi, t_lo, t_hi, t_span = self._ranges
-        if not -_INF < position < _INF:
-            position = 0.0
-        p = _trunc(((p_hi if position > p_hi else p_lo if position < p_lo else position) - p_lo)
-                   * 65535 / p_span)
-        if not -_INF < velocity < _INF:
-            velocity = 0.0
-        v = _trunc(((v_hi if velocity > v_hi else v_lo if velocity < v_lo else velocity) - v_lo)
-                   * 4095 / v_span)
-        last_kp, last_kd, kp_i, kd_i = self._gain_codes
+        if not p_lo <= position <= p_hi:
+            position = 0.0 if position - position != 0.0 else p_hi if position > p_hi else p_lo
+        if not v_lo <= velocity <= v_hi:
+            velocity = 0.0 if velocity - velocity != 0.0 else v_hi if velocity > v_hi else v_lo
+        if not t_lo <= torque <= t_hi:
+            torque = 0.0 if torque - torque != 0.0 else t_hi if torque > t_hi else t_lo
+        last_kp, last_kd, gains = self._gain_codes
         if kp != last_kp or kd != last_kd:   # the gains change seldom (NaN: every time)
-            self._gain_codes = (kp, kd, _gain_code(kp, kp_hi), _gain_code(kd, kd_hi))
-            kp_i, kd_i = self._gain_codes[2:]
-        if not -_INF < torque < _INF:
-            torque = 0.0
-        t = _trunc(((t_hi if torque > t_hi else t_lo if torque < t_lo else torque) - t_lo)
-                   * 4095 / t_span)
+            # kp[12] kd[12] in bits 12..35 of the frame
+            gains = _gain_code(kp, kp_hi) << 24 | _gain_code(kd, kd_hi) << 12
+            self._gain_codes = (kp, kd, gains)
         # p[16] v[12] kp[12] kd[12] t[12], big-endian.
-        return _frame(Frame, (motor_id, (p << 48 | v << 36 | kp_i << 24 | kd_i << 12 | t)
+        return _frame(Frame, (motor_id, (_trunc((position - p_lo) * 65535 / p_span) << 48
+                                         | _trunc((velocity - v_lo) * 4095 / v_span) << 36
+                                         | gains | _trunc((torque - t_lo) * 4095 / t_span))
                               .to_bytes(8, 'big'), False))
 
     def torque_frames(self, torques: Dict[int, float]) -> List[Frame]:
