@@ -189,12 +189,8 @@ class MitProtocol(MotorProtocol):
         frames = []
         t_min, t_max, span, prefix = self.t_min, self.t_max, self._t_span, self._torque_prefix
         for motor_id, tau in torques.items():
-            if not -_INF < tau < _INF:  # NaN fails both comparisons
-                tau = 0.0
-            elif tau > t_max:
-                tau = t_max
-            elif tau < t_min:
-                tau = t_min
+            if not t_min <= tau <= t_max:   # as in command_frame: non-finite sends 0
+                tau = 0.0 if tau - tau != 0.0 else t_max if tau > t_max else t_min
             t = _trunc((tau - t_min) * 4095 / span)  # float_to_uint(tau, t_min, t_max, 12)
             frames.append(_frame(Frame, (motor_id, prefix + t.to_bytes(2, 'big'), False)))
         return frames
