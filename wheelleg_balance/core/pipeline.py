@@ -402,12 +402,13 @@ class BalanceCore:
             u_cmd = u_new
         else:
             controller = self.controllers[self._active]
-            fast = getattr(controller, 'compute_floats', None)
-            if fast is not None:
-                u_cmd = fast(theta_meas, theta_dot, x, x_dot, l, x_dot_ref_c, z)
-            else:
+            try:   # an attribute, not a getattr call: the tick's controllers all have it
+                fast = controller.compute_floats
+            except AttributeError:
                 u_cmd = controller.compute(self._control_input(
                     theta_meas, theta_dot, x, x_dot, l, x_dot_ref_c, z))
+            else:
+                u_cmd = fast(theta_meas, theta_dot, x, x_dot, l, x_dot_ref_c, z)
 
         blend = self._blend_offset
         if blend != 0.0:

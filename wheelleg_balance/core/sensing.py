@@ -217,8 +217,11 @@ class Sensing:
         s, imu = self.snapshot, self.imu
         s.imu_time, s.theta, s.theta_dot, s.roll = imu.time, imu.theta, imu.theta_dot, imu.roll
         if self.from_can:
-            times = self.motors.reply_times.values()
-            s.joint_time = None if None in times else min(times)
+            # min of the two wheels' reply times as a comparison (a min call costs ten times
+            # as much); None until both replied
+            left, right = self.motors.reply_times.values()
+            s.joint_time = None if left is None or right is None else \
+                right if right < left else left
             ws = self.wheel_states
             s.wheel_vel_left, s.wheel_vel_right = ws[0].speed, ws[1].speed   # reading's
         elif self._wheels is None:

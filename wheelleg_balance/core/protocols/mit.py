@@ -130,9 +130,9 @@ class MitProtocol(MotorProtocol):
         self._ranges = (self.p_min, self.p_max, self.p_max - self.p_min, self.v_min, self.v_max,
                         self.v_max - self.v_min, self.kp_max, self.kd_max, self.t_min,
                         self.t_max, self._t_span)
-        #: The newest command's kp and kd and their codes (command_frame encodes them anew
-        #: only when they change).
-        self._gain_codes = (math.nan, math.nan, 0, 0)
+        #: The newest command's kp and kd and their codes in place (command_frame encodes them
+        #: anew only when they change).
+        self._gain_codes = (math.nan, math.nan, 0)
 
     @classmethod
     def from_config(cls, section) -> 'MitProtocol':
@@ -174,27 +174,25 @@ class MitProtocol(MotorProtocol):
         special frame; keep p below p_max if you ever need such a command.)
         """
         # float_to_uint of each field, inlined and unrolled (ten hip frames a tick at most):
-        # the same operations as (clamp(x) - lo) * top / span; a non-finite value (NaN fails
-        # both comparisons) is sent as 0.
+        # the same operations as (clamp(x) - lo) * top / span. A value within its range (the
+        # usual case) costs one chained comparison; one outside is clamped, and a non-finite
+        # one (x - x is NaN for NaN and inf) is sent as 0.
         p_lo, p_hi, p_span, v_lo, v_hi, v_span, kp_hi, kd_hi, t_lo, t_hi, t_span = self._ranges
-        if not -_INF < position < _INF:
-            position = 0.0
-        p = _trunc(((p_hi if position > p_hi else p_lo if position < p_lo else position) - p_lo)
-                   * 65535 / p_span)
-        if not -_INF < velocity < _INF:
-            velocity = 0.0
-        v = _trunc(((v_hi if velocity > v_hi else v_lo if velocity < v_lo else velocity) - v_lo)
-                   * 4095 / v_span)
-        last_kp, last_kd, kp_i, kd_i = self._gain_codes
+        if not p_lo <= position <= p_hi:
+            position = 0.0 if position - position != 0.0 else p_hi if position > p_hi else p_lo
+        if not v_lo <= velocity <= v_hi:
+            velocity = 0.0 if velocity - velocity != 0.0 else v_hi if velocity > v_hi else v_lo
+        if not t_lo <= torque <= t_hi:
+            torque = 0.0 if torque - torque != 0.0 else t_hi if torque > t_hi else t_lo
+        last_kp, last_kd, gains = self._gain_codes
         if kp != last_kp or kd != last_kd:   # the gains change seldom (NaN: every time)
-            self._gain_codes = (kp, kd, _gain_code(kp, kp_hi), _gain_code(kd, kd_hi))
-            kp_i, kd_i = self._gain_codes[2:]
-        if not -_INF < torque < _INF:
-            torque = 0.0
-        t = _trunc(((t_hi if torque > t_hi else t_lo if torque < t_lo else torque) - t_lo)
-                   * 4095 / t_span)
+            # kp[12] kd[12] in bits 12..35 of the frame
+            gains = _gain_code(kp, kp_hi) << 24 | _gain_code(kd, kd_hi) << 12
+            self._gain_codes = (kp, kd, gains)
         # p[16] v[12] kp[12] kd[12] t[12], big-endian.
-        return _frame(Frame, (motor_id, (p << 48 | v << 36 | kp_i << 24 | kd_i << 12 | t)
+        return _frame(Frame, (motor_id, (_trunc((position - p_lo) * 65535 / p_span) << 48
+                                         | _trunc((velocity - v_lo) * 4095 / v_span) << 36
+                                         | gains | _trunc((torque - t_lo) * 4095 / t_span))
                               .to_bytes(8, 'big'), False))
 
     def torque_frames(self, torques: Dict[int, float]) -> List[Frame]:
@@ -202,12 +200,8 @@ class MitProtocol(MotorProtocol):
         frames = []
         t_min, t_max, span, prefix = self.t_min, self.t_max, self._t_span, self._torque_prefix
         for motor_id, tau in torques.items():
-            if not -_INF < tau < _INF:  # NaN fails both comparisons
-                tau = 0.0
-            elif tau > t_max:
-                tau = t_max
-            elif tau < t_min:
-                tau = t_min
+            if not t_min <= tau <= t_max:   # as in command_frame: non-finite sends 0
+                tau = 0.0 if tau - tau != 0.0 else t_max if tau > t_max else t_min
             t = _trunc((tau - t_min) * 4095 / span)  # float_to_uint(tau, t_min, t_max, 12)
             frames.append(_frame(Frame, (motor_id, prefix + t.to_bytes(2, 'big'), False)))
         return frames
