@@ -15,6 +15,7 @@ nodes/lockstep_runner.py's ``LockstepRunner``.
 """
 from array import array
 import gc
+import select
 import time
 from typing import Optional
 
@@ -34,8 +35,11 @@ from ..core.tick_io import PUBLISH_ODOM, PUBLISH_STATE, state_frame, TickInputs
 #: rate at 500 Hz and the observer's 2 ms time base (it is discretized per update); a longer
 #: stall is skipped rather than answered by a long burst of frames.
 MAX_CATCH_UP = 5
-#: Period of the status messages for /diagnostics [s] (a mode change sends one at once).
-STATUS_PERIOD = 0.1
+#: Period of the status messages for /diagnostics [s] (a mode change sends one at once):
+#: balance_node judges the loop alive by their age (balance_node.ALIVE_LIMIT, 0.5 s) and
+#: publishes /diagnostics once a second by default; a status costs about 0.4 ms of the
+#: control process (docs/benchmarks.md), so five a second, not ten.
+STATUS_PERIOD = 0.2
 #: With clock_source imu_stamp: how long the loop waits for a sample before it serves the link
 #: alone (commands, the intake's readiness, a status for /diagnostics) [s, wall clock].
 IDLE_WAKE = 0.02
@@ -72,6 +76,12 @@ class ControlRunner:
             if leg_bus is not None else None
         self.link = link
         self.sensor_link = sensor_link
+        #: The links to drain, the intake's first; one poll tells which have messages, so an
+        #: empty link costs no recv that fails (an exception each).
+        self._links = tuple((x.fileno(), x) for x in (sensor_link, link) if x is not None)
+        self._readable = select.poll()
+        for fd, _ in self._links:
+            self._readable.register(fd, select.POLLIN)
         self.timer = DeadlineLoop(cfg.loop.control_period,
                                   max_catch_up=self.catch_up_limit(cfg, leg_bus is not None),
                                   on_stall=self._on_stall, on_error=self._on_error)
@@ -176,10 +186,15 @@ class ControlRunner:
     def _drain_link(self) -> None:
         self._beat()
         # The intake's samples first, then the ROS side's messages (it may carry samples too).
-        for link in (self.sensor_link, self.link):
-            if link is not None:
-                for tag, payload in link.receive():
-                    self._take(tag, payload)
+        # An end-of-file or a closed socket polls as ready too (POLLHUP, POLLNVAL): receive
+        # then marks the link closed.
+        ready = self._readable.poll(0)
+        if ready:
+            fds = [fd for fd, _ in ready]
+            for fd, link in self._links:
+                if fd in fds:
+                    for tag, payload in link.receive():
+                        self._take(tag, payload)
         if self.link.closed:
             self.timer.stop()  # the ROS side is gone: end with zero torque
 
