@@ -24,7 +24,6 @@ explicit re-arm or disarm. See docs/balance_node.md.
 """
 import gc
 import itertools
-import math
 import signal
 import sys
 import threading
@@ -76,7 +75,8 @@ class BalanceNode(Node):
         self._hardware_id = '%s:%s' % (cfg.can.interface, cfg.can.channel)
         self._status: Optional[dict] = None
         self._status_key = None
-        self._diag_last = -math.inf
+        self._diag_lock = threading.Lock()
+        self._diag_on_change = False   # set once the inputs (and the diagnostics timer) exist
         self._arm_ids = itertools.count(1)
         self._arm_waiting: Dict[int, list] = {}
         self._lock = threading.Lock()
@@ -126,8 +126,11 @@ class BalanceNode(Node):
                                  event_callbacks=no_events)
         self.create_service(SetBool, '~/arm', self._on_arm)
         self.create_service(Trigger, '~/stop', self._on_stop)
-        self._diag_period = 1.0 / cfg.publish.diagnostics_rate
-        self.create_timer(0.05, self._on_diagnostics_timer)
+        # At the diagnostics rate; a new mode or fault publishes at once from the link's
+        # reader (_on_status). An executor wake-up costs rclpy about 0.2 ms: polling for a
+        # change 20 times a second cost the node more than its publishing (docs/benchmarks.md).
+        self.create_timer(1.0 / cfg.publish.diagnostics_rate, self._on_diagnostics_timer)
+        self._diag_on_change = True
         self.input_guard = input_guard.InputGuard(
             self, cfg, lambda found: self.link.send_object(L.CONFLICTS, found))
         self.create_timer(input_guard.CHECK_PERIOD, self.input_guard.check)
@@ -169,6 +172,8 @@ class BalanceNode(Node):
         elif tag == L.STATUS:
             self._status = payload
             self._loop_mode = int(payload['mode_index'])
+            if self._diag_on_change and self.context.ok() and not self._closing.is_set():
+                self._publish_diagnostics(changed_only=True)
         elif tag == L.ARM_REPLY:
             request_id, ok, message = payload
             with self._lock:
@@ -235,13 +240,18 @@ class BalanceNode(Node):
     def _on_diagnostics_timer(self) -> None:
         if self._closing.is_set():   # the executor may still spin while shutdown() runs
             return
-        st = self._status
-        key = None if st is None else (st['mode'], tuple(st['faults']))
-        now = time.monotonic()
-        if key == self._status_key and now - self._diag_last < self._diag_period:
-            return
-        self._status_key, self._diag_last = key, now
-        self._diag_pub.publish(self.diagnostics(now))
+        self._publish_diagnostics(changed_only=False)
+
+    def _publish_diagnostics(self, changed_only: bool) -> None:
+        """Publish /diagnostics (changed_only: only if the mode or the faults changed)."""
+        with self._diag_lock:   # the timer's thread and the link's reader
+            st = self._status
+            key = None if st is None else (st['mode'], tuple(st['faults']))
+            if changed_only and key == self._status_key:
+                return
+            self._status_key = key
+            msg = self.diagnostics(time.monotonic())
+        self._diag_pub.publish(msg)
 
     @property
     def control_task_id(self) -> Optional[int]:
