@@ -16,7 +16,8 @@ them:
   (std_srvs/Trigger): the software emergency stop, zero torque and the motors to rest at once;
 - ``~/state``, ``odom``, ``joint_states`` (the six motors and the passive knees) and TF
   (base_footprint -> base_link, odom -> base_footprint with ``enable_odom_tf``) published from
-  what the loop sends back, ``/diagnostics`` from its status (nodes/diagnostics.py).
+  what the loop sends back, each while it has a subscription (the loop sends no frame nobody
+  reads: nodes/state_publisher.py), ``/diagnostics`` from its status (nodes/diagnostics.py).
 
 Modes (core/safety.py): DISARMED sends no frames (the motors were left in rest mode by the exit
 frames), BALANCING sends the controller's torques, FAULT sends zero torque every tick until an
@@ -52,7 +53,7 @@ from ..processes import StartError
 
 #: How long ~/arm waits for the loop's answer [s].
 ARM_TIMEOUT = 1.0
-#: A status older than this [s] means the control loop is not alive (it sends ten a second).
+#: A status older than this [s] means the control loop is not alive (it sends five a second).
 ALIVE_LIMIT = 0.5
 
 
@@ -85,11 +86,13 @@ class BalanceNode(Node):
         self._control_error = ''
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10,
                                                event_callbacks=lean.publisher_events())
-        self._publisher = StatePublisher(self, cfg)
+        self._publisher = StatePublisher(
+            self, cfg, lambda flags: self.link.send_object(L.WANTED, flags))
         # The GIL is handed over every 5 ms by default: far too late for a control loop in a
         # thread of this process (tests) when the executor is busy in Python.
         sys.setswitchinterval(min(sys.getswitchinterval(), 0.0002))
         self._start_children(bus)
+        self._publisher.report_wanted()   # then on every change (the publishers' events)
         self._make_inputs(cfg)
         self.get_logger().info(
             'balance_node: controller %s, CAN %s (%s, motors %d/%d), %.1f ms loop in %s, %s' % (

@@ -4,10 +4,10 @@ The control loop of balance_node's control process: ``ControlRunner`` (no rclpy)
 A DeadlineLoop (core/deadline.py) that, every period, drains the link to the ROS side
 (nodes/control_link.py: sensor samples, cmd_vel, arm requests, parameter changes), polls the
 CAN bus, runs ``BalanceLoop.tick`` (core/balance_loop.py), sends its frames, and sends back the
-state frame (at the publication rates), arm replies, log lines and, ten times a second or on a
-mode change, a status for /diagnostics. At every pass it writes a heartbeat (the time, whether
-it commands the motors) into memory it shares with the watchdog process (nodes/watchdog.py);
-no arm before the watchdog watches. It ends with zero torque and exit-motor-mode frames.
+state frame (at the publication rates, those with a subscription on the ROS side), arm replies,
+log lines and, five times a second or on a mode change, a status for /diagnostics. At every
+pass it writes a heartbeat (the time, whether it commands the motors) into memory it shares
+with the watchdog process (nodes/watchdog.py); no arm before the watchdog watches. It ends with zero torque and exit-motor-mode frames.
 
 nodes/control_process.py runs it as a process of its own; tests that hand balance_node an
 in-process python-can bus run it in a thread. On a simulator's IMU stamps the loop is
@@ -94,6 +94,9 @@ class ControlRunner:
         self._arm_ids = []
         self._state_every = decimation(cfg.publish.state_publish_rate, self.timer.period)
         self._odom_every = decimation(cfg.publish.odom_publish_rate, self.timer.period)
+        #: The publications the ROS side has subscribers for (L.WANTED): a frame nobody reads
+        #: is neither built nor sent (nor woken up for on the ROS side).
+        self._wanted = PUBLISH_STATE | PUBLISH_ODOM
         self._realtime_options = realtime_options
         self.realtime = ''
         self._status_due = 0.0
@@ -219,6 +222,8 @@ class ControlRunner:
             inputs.params = {**inputs.params, **payload}
         elif tag == L.CONFLICTS:
             inputs.conflicts = payload   # a state: it stays until the next verdict
+        elif tag == L.WANTED:
+            self._wanted = payload
         elif tag == L.STOP:
             self.timer.stop()
         elif tag == L.READY:
@@ -281,6 +286,7 @@ class ControlRunner:
             flags |= PUBLISH_STATE
         if self._odom_every and n % self._odom_every == 0:
             flags |= PUBLISH_ODOM
+        flags &= self._wanted
         if flags:
             joints = ()
             if flags & PUBLISH_STATE:

@@ -19,7 +19,13 @@ _THETA, _D_HAT, _L = (STATE_FIELDS.index(n) for n in ('theta', 'd_hat', 'l'))
 class TfPublisher:
     """Publishes the robot's two transforms from the loop's state (see the module docstring)."""
 
-    def __init__(self, node, cfg: BalanceConfig):
+    def __init__(self, node, cfg: BalanceConfig, create=None):
+        """
+        Make the /tf publisher (with tf2_msgs installed).
+
+        create(msg_type, topic, qos): makes it (nodes/state_publisher.py's counts its
+        subscriptions); None: ``node.create_publisher``.
+        """
         self.node = node
         pub, leg = cfg.publish, cfg.leg
         self.odom_tf = pub.enable_odom_tf
@@ -41,7 +47,7 @@ class TfPublisher:
         self._msg = TFMessage(transforms=[t for t in (self._base, self._odom) if t is not None])
         qos = QoSProfile(depth=100, history=QoSHistoryPolicy.KEEP_LAST,
                          durability=QoSDurabilityPolicy.VOLATILE)
-        self._pub = node.create_publisher(TFMessage, '/tf', qos)
+        self._pub = (create or node.create_publisher)(TFMessage, '/tf', qos)
 
     def publish(self, stamp, state, pose) -> None:
         """Publish for ~/state values ``state`` and the odometry ``pose`` (x, y, yaw)."""
