@@ -7,7 +7,8 @@ CAN bus, runs ``BalanceLoop.tick`` (core/balance_loop.py), sends its frames, and
 state frame (at the publication rates, those with a subscription on the ROS side), arm replies,
 log lines and, five times a second or on a mode change, a status for /diagnostics. At every
 pass it writes a heartbeat (the time, whether it commands the motors) into memory it shares
-with the watchdog process (nodes/watchdog.py); no arm before the watchdog watches. It ends with zero torque and exit-motor-mode frames.
+with the watchdog process (nodes/watchdog.py); no arm before the watchdog watches. It ends
+with zero torque and exit-motor-mode frames.
 
 nodes/control_process.py runs it as a process of its own; tests that hand balance_node an
 in-process python-can bus run it in a thread. On a simulator's IMU stamps the loop is
