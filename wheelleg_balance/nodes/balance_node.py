@@ -18,7 +18,8 @@ them:
   identification phase (core/excitation.py), answered like ``~/arm``;
 - ``~/state``, ``odom``, ``joint_states`` (the six motors and the passive knees) and TF
   (base_footprint -> base_link, odom -> base_footprint with ``enable_odom_tf``) published from
-  what the loop sends back, ``/diagnostics`` from its status (nodes/diagnostics.py).
+  what the loop sends back, each while it has a subscription (the loop sends no frame nobody
+  reads: nodes/state_publisher.py), ``/diagnostics`` from its status (nodes/diagnostics.py).
 
 Modes (core/safety.py): DISARMED sends no frames (the motors were left in rest mode by the exit
 frames), BALANCING sends the controller's torques, FAULT sends zero torque every tick until an
@@ -26,7 +27,6 @@ explicit re-arm or disarm, EXCITING an identification phase's torques. See docs/
 """
 import gc
 import itertools
-import math
 import signal
 import sys
 import threading
@@ -56,7 +56,7 @@ from ..processes import StartError
 
 #: How long ~/arm waits for the loop's answer [s].
 ARM_TIMEOUT = 1.0
-#: A status older than this [s] means the control loop is not alive (it sends ten a second).
+#: A status older than this [s] means the control loop is not alive (it sends five a second).
 ALIVE_LIMIT = 0.5
 
 
@@ -79,7 +79,8 @@ class BalanceNode(Node):
         self._hardware_id = '%s:%s' % (cfg.can.interface, cfg.can.channel)
         self._status: Optional[dict] = None
         self._status_key = None
-        self._diag_last = -math.inf
+        self._diag_lock = threading.Lock()
+        self._diag_on_change = False   # set once the inputs (and the diagnostics timer) exist
         self._arm_ids = itertools.count(1)
         self._arm_waiting: Dict[int, list] = {}
         self._lock = threading.Lock()
@@ -88,11 +89,13 @@ class BalanceNode(Node):
         self._control_error = ''
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10,
                                                event_callbacks=lean.publisher_events())
-        self._publisher = StatePublisher(self, cfg)
+        self._publisher = StatePublisher(
+            self, cfg, lambda flags: self.link.send_object(L.WANTED, flags))
         # The GIL is handed over every 5 ms by default: far too late for a control loop in a
         # thread of this process (tests) when the executor is busy in Python.
         sys.setswitchinterval(min(sys.getswitchinterval(), 0.0002))
         self._start_children(bus)
+        self._publisher.report_wanted()   # then on every change (the publishers' events)
         self._make_inputs(cfg)
         self.get_logger().info(
             'balance_node: controller %s, CAN %s (%s, motors %d/%d), %.1f ms loop in %s, %s' % (
@@ -133,8 +136,11 @@ class BalanceNode(Node):
                                 lambda request, response, phase=phase:
                                 self._on_excite(phase, response))
         self.create_service(Trigger, '~/stop', self._on_stop)
-        self._diag_period = 1.0 / cfg.publish.diagnostics_rate
-        self.create_timer(0.05, self._on_diagnostics_timer)
+        # At the diagnostics rate; a new mode or fault publishes at once from the link's
+        # reader (_on_status). An executor wake-up costs rclpy about 0.2 ms: polling for a
+        # change 20 times a second cost the node more than its publishing (docs/benchmarks.md).
+        self.create_timer(1.0 / cfg.publish.diagnostics_rate, self._on_diagnostics_timer)
+        self._diag_on_change = True
         self.input_guard = input_guard.InputGuard(
             self, cfg, lambda found: self.link.send_object(L.CONFLICTS, found))
         self.create_timer(input_guard.CHECK_PERIOD, self.input_guard.check)
@@ -176,6 +182,8 @@ class BalanceNode(Node):
         elif tag == L.STATUS:
             self._status = payload
             self._loop_mode = int(payload['mode_index'])
+            if self._diag_on_change and self.context.ok() and not self._closing.is_set():
+                self._publish_diagnostics(changed_only=True)
         elif tag == L.ARM_REPLY:
             request_id, ok, message = payload
             with self._lock:
@@ -251,13 +259,18 @@ class BalanceNode(Node):
     def _on_diagnostics_timer(self) -> None:
         if self._closing.is_set():   # the executor may still spin while shutdown() runs
             return
-        st = self._status
-        key = None if st is None else (st['mode'], tuple(st['faults']))
-        now = time.monotonic()
-        if key == self._status_key and now - self._diag_last < self._diag_period:
-            return
-        self._status_key, self._diag_last = key, now
-        self._diag_pub.publish(self.diagnostics(now))
+        self._publish_diagnostics(changed_only=False)
+
+    def _publish_diagnostics(self, changed_only: bool) -> None:
+        """Publish /diagnostics (changed_only: only if the mode or the faults changed)."""
+        with self._diag_lock:   # the timer's thread and the link's reader
+            st = self._status
+            key = None if st is None else (st['mode'], tuple(st['faults']))
+            if changed_only and key == self._status_key:
+                return
+            self._status_key = key
+            msg = self.diagnostics(time.monotonic())
+        self._diag_pub.publish(msg)
 
     @property
     def control_task_id(self) -> Optional[int]:

@@ -60,6 +60,13 @@ CAN_FRAME = struct.Struct('=IB3x8s')
 #: The identifier bits of an extended and of a standard can_id (<linux/can.h>).
 CAN_EFF_MASK = 0x1FFFFFFF
 CAN_SFF_MASK = 0x7FF
+#: Error and remote frames carry no data for the loop: counted and dropped.
+_NO_DATA_FLAGS = CAN_ERR_FLAG | CAN_RTR_FLAG
+#: frame_bits (core/can_budget.py) of 0..8 data bytes, standard and extended: looked up per
+#: frame instead of called (a call with its min and max cost more than the rest of a frame's
+#: bookkeeping).
+_STANDARD_BITS = tuple(frame_bits(n, False) for n in range(9))
+_EXTENDED_BITS = tuple(frame_bits(n, True) for n in range(9))
 
 
 def raw_socket_of(bus: can.BusABC) -> Optional[socket.socket]:
@@ -230,10 +237,11 @@ class CanIo:
                 return 0
             now = self._clock()
             recv, unpack, size = self.raw.recv, CAN_FRAME.unpack, CAN_FRAME.size
+            dontwait = socket.MSG_DONTWAIT
             try:
                 while n < max_frames:
                     try:
-                        cf = recv(size, socket.MSG_DONTWAIT)
+                        cf = recv(size, dontwait)
                     except (BlockingIOError, InterruptedError):
                         break
                     n += 1
@@ -241,13 +249,16 @@ class CanIo:
                         raise ValueError('a %d-byte read is no CAN frame' % len(cf))
                     can_id, length, data = unpack(cf)
                     frames += 1
-                    if can_id & (CAN_ERR_FLAG | CAN_RTR_FLAG):
+                    if can_id & _NO_DATA_FLAGS:
                         continue   # counted and dropped, as on python-can's path
-                    length = min(length, 8)
-                    extended = bool(can_id & CAN_EFF_FLAG)
-                    bits += frame_bits(length, extended)
-                    into.append((now, Frame(can_id & (CAN_EFF_MASK if extended else CAN_SFF_MASK),
-                                            data[:length], extended)))
+                    if length > 8:
+                        length = 8
+                    if can_id & CAN_EFF_FLAG:
+                        bits += _EXTENDED_BITS[length]
+                        into.append((now, Frame(can_id & CAN_EFF_MASK, data[:length], True)))
+                    else:
+                        bits += _STANDARD_BITS[length]
+                        into.append((now, Frame(can_id & CAN_SFF_MASK, data[:length], False)))
             except OSError as exc:
                 self.rx_errors += 1
                 self.last_rx_error = _os_error_text('receive', exc)
@@ -286,33 +297,42 @@ class CanIo:
         # send() on the raw CAN socket (the lock held). A full TX queue is ENOBUFS at once, as
         # through python-can; a full socket buffer waits up to send_timeout for room, as
         # python-can's select before each send does.
-        send, pack = self.raw.send, CAN_FRAME.pack
+        send, pack, size = self.raw.send, CAN_FRAME.pack, CAN_FRAME.size
+        dontwait = socket.MSG_DONTWAIT
+        bits = sent_frames = 0
+        error = None
         for f in frames:
             data = f.data
+            length = len(data)
             try:
-                if len(data) > 8:
-                    raise ValueError('%d data bytes in a classic CAN frame' % len(data))
-                can_id = (f.arbitration_id | CAN_EFF_FLAG) if f.is_extended_id \
-                    else f.arbitration_id
-                cf = pack(can_id, len(data), data)
+                if length > 8:
+                    raise ValueError('%d data bytes in a classic CAN frame' % length)
+                if f.is_extended_id:
+                    cf = pack(f.arbitration_id | CAN_EFF_FLAG, length, data)
+                    frame_bits_ = _EXTENDED_BITS[length]
+                else:
+                    cf = pack(f.arbitration_id, length, data)
+                    frame_bits_ = _STANDARD_BITS[length]
                 try:
-                    sent = send(cf, socket.MSG_DONTWAIT)
+                    sent = send(cf, dontwait)
                 except BlockingIOError:
                     select.select([], [self.raw], [], self.send_timeout)
-                    sent = send(cf, socket.MSG_DONTWAIT)
-                if sent != CAN_FRAME.size:
-                    raise ValueError('sent %d of %d bytes' % (sent, CAN_FRAME.size))
+                    sent = send(cf, dontwait)
+                if sent != size:
+                    raise ValueError('sent %d of %d bytes' % (sent, size))
             except OSError as exc:
-                self.last_tx_error = _os_error_text('transmit', exc)
+                error = self.last_tx_error = _os_error_text('transmit', exc)
             except (ValueError, struct.error) as exc:
-                self.last_tx_error = '%s: %s' % (type(exc).__name__, exc)
+                error = self.last_tx_error = '%s: %s' % (type(exc).__name__, exc)
             else:
-                self.tx_frames += 1
-                self.bits += frame_bits(len(data), f.is_extended_id)
+                sent_frames += 1
+                bits += frame_bits_
                 continue
             self.tx_errors += 1
-            return self.last_tx_error
-        return None
+            break
+        self.tx_frames += sent_frames
+        self.bits += bits
+        return error
 
     def counters(self) -> dict:
         """Return the counters and last errors, as plain values."""

@@ -35,6 +35,7 @@ ARM = b'A'          # (request id, bool, or an identification phase's name)
 PARAMS = b'P'       # {name: value}
 STOP = b'S'         # shut down: zero torque, exit motor mode, end
 CONFLICTS = b'K'    # {input: why} inputs refused for their publishers (nodes/input_guard.py)
+WANTED = b'W'       # the state frame's publication flags that have subscribers (tick_io.py)
 # Tags: control loop -> ROS side.
 STATE = b's'        # ~/state values, the odometry, the tick's time (and the joints' values)
 ARM_REPLY = b'a'    # (request id, success, message)

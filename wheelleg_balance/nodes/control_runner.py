@@ -4,10 +4,11 @@ The control loop of balance_node's control process: ``ControlRunner`` (no rclpy)
 A DeadlineLoop (core/deadline.py) that, every period, drains the link to the ROS side
 (nodes/control_link.py: sensor samples, cmd_vel, arm requests, parameter changes), polls the
 CAN bus, runs ``BalanceLoop.tick`` (core/balance_loop.py), sends its frames, and sends back the
-state frame (at the publication rates), arm replies, log lines and, ten times a second or on a
-mode change, a status for /diagnostics. At every pass it writes a heartbeat (the time, whether
-it commands the motors) into memory it shares with the watchdog process (nodes/watchdog.py);
-no arm before the watchdog watches. It ends with zero torque and exit-motor-mode frames.
+state frame (at the publication rates, those with a subscription on the ROS side), arm replies,
+log lines and, five times a second or on a mode change, a status for /diagnostics. At every
+pass it writes a heartbeat (the time, whether it commands the motors) into memory it shares
+with the watchdog process (nodes/watchdog.py); no arm before the watchdog watches. It ends
+with zero torque and exit-motor-mode frames.
 
 nodes/control_process.py runs it as a process of its own; tests that hand balance_node an
 in-process python-can bus run it in a thread. On a simulator's IMU stamps the loop is
@@ -15,6 +16,7 @@ nodes/lockstep_runner.py's ``LockstepRunner``.
 """
 from array import array
 import gc
+import select
 import time
 from typing import Optional
 
@@ -34,8 +36,11 @@ from ..core.tick_io import PUBLISH_ODOM, PUBLISH_STATE, state_frame, TickInputs
 #: rate at 500 Hz and the observer's 2 ms time base (it is discretized per update); a longer
 #: stall is skipped rather than answered by a long burst of frames.
 MAX_CATCH_UP = 5
-#: Period of the status messages for /diagnostics [s] (a mode change sends one at once).
-STATUS_PERIOD = 0.1
+#: Period of the status messages for /diagnostics [s] (a mode change sends one at once):
+#: balance_node judges the loop alive by their age (balance_node.ALIVE_LIMIT, 0.5 s) and
+#: publishes /diagnostics once a second by default; a status costs about 0.4 ms of the
+#: control process (docs/benchmarks.md), so five a second, not ten.
+STATUS_PERIOD = 0.2
 #: With clock_source imu_stamp: how long the loop waits for a sample before it serves the link
 #: alone (commands, the intake's readiness, a status for /diagnostics) [s, wall clock].
 IDLE_WAKE = 0.02
@@ -72,6 +77,12 @@ class ControlRunner:
             if leg_bus is not None else None
         self.link = link
         self.sensor_link = sensor_link
+        #: The links to drain, the intake's first; one poll tells which have messages, so an
+        #: empty link costs no recv that fails (an exception each).
+        self._links = tuple((x.fileno(), x) for x in (sensor_link, link) if x is not None)
+        self._readable = select.poll()
+        for fd, _ in self._links:
+            self._readable.register(fd, select.POLLIN)
         self.timer = DeadlineLoop(cfg.loop.control_period,
                                   max_catch_up=self.catch_up_limit(cfg, leg_bus is not None),
                                   on_stall=self._on_stall, on_error=self._on_error)
@@ -84,6 +95,9 @@ class ControlRunner:
         self._arm_ids = []
         self._state_every = decimation(cfg.publish.state_publish_rate, self.timer.period)
         self._odom_every = decimation(cfg.publish.odom_publish_rate, self.timer.period)
+        #: The publications the ROS side has subscribers for (L.WANTED): a frame nobody reads
+        #: is neither built nor sent (nor woken up for on the ROS side).
+        self._wanted = PUBLISH_STATE | PUBLISH_ODOM
         self._realtime_options = realtime_options
         self.realtime = ''
         self._status_due = 0.0
@@ -176,10 +190,15 @@ class ControlRunner:
     def _drain_link(self) -> None:
         self._beat()
         # The intake's samples first, then the ROS side's messages (it may carry samples too).
-        for link in (self.sensor_link, self.link):
-            if link is not None:
-                for tag, payload in link.receive():
-                    self._take(tag, payload)
+        # An end-of-file or a closed socket polls as ready too (POLLHUP, POLLNVAL): receive
+        # then marks the link closed.
+        ready = self._readable.poll(0)
+        if ready:
+            fds = [fd for fd, _ in ready]
+            for fd, link in self._links:
+                if fd in fds:
+                    for tag, payload in link.receive():
+                        self._take(tag, payload)
         if self.link.closed:
             self.timer.stop()  # the ROS side is gone: end with zero torque
 
@@ -207,6 +226,8 @@ class ControlRunner:
             inputs.params = {**inputs.params, **payload}
         elif tag == L.CONFLICTS:
             inputs.conflicts = payload   # a state: it stays until the next verdict
+        elif tag == L.WANTED:
+            self._wanted = payload
         elif tag == L.STOP:
             self.timer.stop()
         elif tag == L.READY:
@@ -269,6 +290,7 @@ class ControlRunner:
             flags |= PUBLISH_STATE
         if self._odom_every and n % self._odom_every == 0:
             flags |= PUBLISH_ODOM
+        flags &= self._wanted
         if flags:
             joints = ()
             if flags & PUBLISH_STATE:

@@ -21,7 +21,12 @@ def subscription_events():
     return SubscriptionEventCallbacks(use_default_callbacks=False)
 
 
-def publisher_events():
-    """Return event callbacks (PublisherEventCallbacks) without the default handlers."""
+def publisher_events(matched=None):
+    """
+    Return event callbacks (PublisherEventCallbacks) without the default handlers.
+
+    matched: called with the rmw_matched_status_t (``current_count``: the subscriptions now
+    matched) when a subscription comes or goes.
+    """
     from rclpy.event_handler import PublisherEventCallbacks
-    return PublisherEventCallbacks(use_default_callbacks=False)
+    return PublisherEventCallbacks(matched=matched, use_default_callbacks=False)

@@ -5,8 +5,16 @@ Each state frame (core/tick_io.py) carries its publication flags: the ~/state va
 (base_footprint -> base_link, and odom -> base_footprint with ``enable_odom_tf``:
 nodes/transforms.py) when ``PUBLISH_STATE`` is set, the odometry when ``PUBLISH_ODOM`` is; the
 joints' values come with the state. Messages are made once and refilled.
+
+A topic without a subscription is not published, and the control process is told which
+publications have any (``wanted``, sent as control_link.WANTED), so that it builds and sends no
+frame nobody reads: the ROS side wakes for nothing, and rclpy's publish with its clock read
+costs some 0.3 ms a frame here after a sleep, when its code is out of the caches
+(docs/benchmarks.md). The counts follow each publisher's "matched" event; an rmw without that
+event counts as subscribed, always.
 """
 import math
+from typing import Callable, Optional
 
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import JointState
@@ -22,29 +30,77 @@ from ..core.tick_io import FLAGS, N_STATE, ODOM, PUBLISH_ODOM, PUBLISH_STATE, ST
 class StatePublisher:
     """The publishers of a balance_node (see the module docstring)."""
 
-    def __init__(self, node, cfg: BalanceConfig):
-        def publisher(msg_type, topic):
-            return node.create_publisher(msg_type, topic, 10,
-                                         event_callbacks=lean.publisher_events())
+    def __init__(self, node, cfg: BalanceConfig,
+                 on_wanted: Optional[Callable[[int], None]] = None):
+        """
+        Make the publishers.
+
+        on_wanted(flags): called (from the executor) when the publication flags that have
+        subscriptions change (``wanted``).
+        """
+        self._node = node
+        self._on_wanted = on_wanted
+        #: Subscriptions matched per publisher: 'state', 'odom', 'joints', 'tf' (math.inf: the
+        #: rmw does not say).
+        self.matched = {}
+        self._wanted_sent: Optional[int] = None
+
+        def publisher(msg_type, topic, key):
+            return self._create(msg_type, topic, 10, key)
         self._state_msg = Float64MultiArray()
         self._state_msg.layout.dim = [MultiArrayDimension(
             label=','.join(STATE_FIELDS), size=N_STATE, stride=N_STATE)]
-        self._state_pub = publisher(Float64MultiArray, '~/state')
+        self._state_pub = publisher(Float64MultiArray, '~/state', 'state')
         self._odom_msg = _odometry(cfg)
-        self._odom_pub = publisher(Odometry, 'odom')
+        self._odom_pub = publisher(Odometry, 'odom', 'odom')
         self._joint_msg = JointState(name=joint_names(cfg))
-        self._joint_pub = publisher(JointState, 'joint_states')
-        self._tf = TfPublisher(node, cfg)
+        self._joint_pub = publisher(JointState, 'joint_states', 'joints')
+        self.matched.setdefault('tf', 0)   # no tf2_msgs: no /tf publisher
+        self._tf = TfPublisher(node, cfg, lambda msg_type, topic, qos: self._create(
+            msg_type, topic, qos, 'tf'))
+
+    def _create(self, msg_type, topic: str, qos, key: str):
+        """Create a publisher whose subscriptions are counted in ``matched[key]``."""
+        from rclpy.event_handler import UnsupportedEventTypeError
+
+        def on_matched(status):
+            self.matched[key] = status.current_count
+            self.report_wanted()
+        try:
+            pub = self._node.create_publisher(
+                msg_type, topic, qos, event_callbacks=lean.publisher_events(on_matched))
+        except UnsupportedEventTypeError:
+            self.matched[key] = math.inf
+            return self._node.create_publisher(msg_type, topic, qos,
+                                               event_callbacks=lean.publisher_events())
+        self.matched[key] = pub.get_subscription_count()
+        return pub
+
+    def wanted(self) -> int:
+        """Return the state frame's flags (PUBLISH_STATE, PUBLISH_ODOM) someone subscribes to."""
+        m = self.matched
+        return (PUBLISH_STATE if m['state'] or m['joints'] or m['tf'] else 0) | (
+            PUBLISH_ODOM if m['odom'] else 0)
+
+    def report_wanted(self) -> None:
+        """Call on_wanted with ``wanted()`` if it changed since the last call."""
+        wanted = self.wanted()
+        if wanted != self._wanted_sent and self._on_wanted is not None:
+            self._wanted_sent = wanted
+            self._on_wanted(wanted)
 
     def publish(self, values, joints, stamp) -> None:
         """Publish a state frame (an array('d'): float64[] fields take it unchecked)."""
         flags = int(values[FLAGS])
         x, y, yaw, x_dot, yaw_rate = values[ODOM]
+        m = self.matched
         if flags & PUBLISH_STATE:
-            self._state_msg.data = values[:N_STATE]
-            self._state_pub.publish(self._state_msg)
-            self._tf.publish(stamp, values, (x, y, yaw))
-        if flags & PUBLISH_ODOM:
+            if m['state']:
+                self._state_msg.data = values[:N_STATE]
+                self._state_pub.publish(self._state_msg)
+            if m['tf']:
+                self._tf.publish(stamp, values, (x, y, yaw))
+        if flags & PUBLISH_ODOM and m['odom']:
             msg = self._odom_msg
             msg.header.stamp = stamp
             msg.pose.pose.position.x, msg.pose.pose.position.y = x, y
@@ -52,7 +108,7 @@ class StatePublisher:
             msg.pose.pose.orientation.w = math.cos(0.5 * yaw)
             msg.twist.twist.linear.x, msg.twist.twist.angular.z = x_dot, yaw_rate
             self._odom_pub.publish(msg)
-        if joints:
+        if joints and m['joints']:
             msg, n = self._joint_msg, len(self._joint_msg.name)
             msg.header.stamp = stamp
             msg.position, msg.velocity, msg.effort = joints[0:n], joints[n:2 * n], joints[2 * n:]

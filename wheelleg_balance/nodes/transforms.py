@@ -19,7 +19,13 @@ _THETA, _D_HAT, _L = (STATE_FIELDS.index(n) for n in ('theta', 'd_hat', 'l'))
 class TfPublisher:
     """Publishes the robot's two transforms from the loop's state (see the module docstring)."""
 
-    def __init__(self, node, cfg: BalanceConfig):
+    def __init__(self, node, cfg: BalanceConfig, create=None):
+        """
+        Make the /tf publisher (with tf2_msgs installed).
+
+        create(msg_type, topic, qos): makes it (nodes/state_publisher.py's counts its
+        subscriptions); None: ``node.create_publisher``.
+        """
         self.node = node
         pub, leg = cfg.publish, cfg.leg
         self.odom_tf = pub.enable_odom_tf
@@ -33,10 +39,15 @@ class TfPublisher:
                                       'ros-jazzy-tf2-msgs)')
             self._pub = None
             return
-        self._msg_type = TFMessage
+        odom, footprint, base = self._frames
+        # Made once and refilled (as nodes/state_publisher.py's messages): the transforms'
+        # frames never change, and building the messages cost more than publishing them.
+        self._base = _stamped(footprint, base)
+        self._odom = _stamped(odom, footprint) if self.odom_tf else None
+        self._msg = TFMessage(transforms=[t for t in (self._base, self._odom) if t is not None])
         qos = QoSProfile(depth=100, history=QoSHistoryPolicy.KEEP_LAST,
                          durability=QoSDurabilityPolicy.VOLATILE)
-        self._pub = node.create_publisher(TFMessage, '/tf', qos)
+        self._pub = (create or node.create_publisher)(TFMessage, '/tf', qos)
 
     def publish(self, stamp, state, pose) -> None:
         """Publish for ~/state values ``state`` and the odometry ``pose`` (x, y, yaw)."""
@@ -46,19 +57,22 @@ class TfPublisher:
         l = state[_L]
         if not (theta == theta and l == l):
             return
-        odom, footprint, base = self._frames
-        transforms = [_stamped(stamp, footprint, base, base_footprint_to_base_link(
-            theta, self.com[0], self.com[1] - l, self.wheel_radius))]
-        if self.odom_tf:
-            transforms.append(_stamped(stamp, odom, footprint, odom_to_base_footprint(*pose)))
-        self._pub.publish(self._msg_type(transforms=transforms))
+        _fill(self._base, stamp, base_footprint_to_base_link(
+            theta, self.com[0], self.com[1] - l, self.wheel_radius))
+        if self._odom is not None:
+            _fill(self._odom, stamp, odom_to_base_footprint(*pose))
+        self._pub.publish(self._msg)
 
 
-def _stamped(stamp, parent: str, child: str, transform) -> TransformStamped:
-    (x, y, z), (qx, qy, qz, qw) = transform
+def _stamped(parent: str, child: str) -> TransformStamped:
     t = TransformStamped()
-    t.header.stamp, t.header.frame_id, t.child_frame_id = stamp, parent, child
-    t.transform.translation.x, t.transform.translation.y, t.transform.translation.z = x, y, z
-    r = t.transform.rotation
-    r.x, r.y, r.z, r.w = qx, qy, qz, qw
+    t.header.frame_id, t.child_frame_id = parent, child
     return t
+
+
+def _fill(t: TransformStamped, stamp, transform) -> None:
+    (x, y, z), (qx, qy, qz, qw) = transform
+    t.header.stamp = stamp
+    tr, r = t.transform.translation, t.transform.rotation
+    tr.x, tr.y, tr.z = x, y, z
+    r.x, r.y, r.z, r.w = qx, qy, qz, qw
