@@ -7,7 +7,7 @@ with the configured protocol's own emulated motors (bench.wheel_motors: core/pro
 8-byte replies (temperature and error code) as CubeMars firmware sends them; its C620 ESCs
 behind ``C620Motors``): what the tick sends is what the emulated firmware acts on, its replies
 are what the tick reads. The motor faults on each protocol: a silent motor, error bits (every
-protocol whose reply carries them: not the C620's feedback, not LK's torque reply), an
+protocol whose reply carries them, and LK by its state-1 read: not the C620's feedback), an
 over-temperature, a reboot; and the second-commander check. Wheel speeds come from joint
 states; max_wheel_torque 4 N m is within each model's limit.
 """
