@@ -7,7 +7,7 @@ with the configured protocol's own emulated motors (bench.wheel_motors: core/pro
 8-byte replies (temperature and error code) as CubeMars firmware sends them; its C620 ESCs
 behind ``C620Motors``): what the tick sends is what the emulated firmware acts on, its replies
 are what the tick reads. The motor faults on each protocol: a silent motor, error bits (every
-protocol whose reply carries them: not the C620's feedback, not LK's torque reply), an
+protocol whose reply carries them, and LK by its state-1 read: not the C620's feedback), an
 over-temperature, a reboot; and the second-commander check. Wheel speeds come from joint
 states; max_wheel_torque 4 N m is within each model's limit.
 """
@@ -104,6 +104,13 @@ def test_the_bench_builds_each_protocols_own_motors():
         assert bench.motors.protocol is bench.loop.protocol
 
 
+def health_latency_ticks(bench) -> int:
+    """Return the ticks until every wheel was asked once (health_interval; 0: no query)."""
+    interval = bench.loop.protocol.health_interval
+    ids = bench.loop.motors.ids
+    return math.ceil(len(ids) * interval / bench.period - 1e-9) if interval else 0
+
+
 def lean(bench, ticks=5):
     for _ in range(ticks):
         bench.feed(make_imu(0.3, 0.0))
@@ -153,17 +160,20 @@ def test_a_silent_motor_faults(make_bench, protocol):
     ('mit', 1, 'motor over-temperature'), ('mit', 5, 'encoder fault'),
     ('cybergear', 0b000100, 'over-temperature'), ('cybergear', 0b000001, 'under-voltage'),
     ('damiao', 0xB, 'MOS over-temperature'), ('damiao', 0xA, 'over-current'),
-    pytest.param('lk', 0x08, 'over-temperature', marks=pytest.mark.xfail(
-        strict=True, reason="LK's torque reply carries no error bits and the tick does not "
-        'read the state-1 reply (0x9A) that has them: the motor stops, the tick balances on'))])
+    # LK's torque reply has no error bits: the tick's state-1 read (0x9A) brings them.
+    ('lk', 0x08, 'over-temperature'), ('lk', 0x01, 'under-voltage')])
 def test_a_motor_fault_faults_the_tick_with_the_protocols_reason(make_bench, protocol, code,
                                                                  reason):
     bench = make_bench(protocol)
     left = bench.loop.motors.ids[0]
     bench.motors.motor(left).set_error(code)
-    for _ in range(2):   # the motor answers with the fault, the next tick reads it
+    # The motor answers with the fault, the next tick reads it; where the protocol asks for
+    # it (health_interval), once the query to this motor has gone out.
+    for _ in range(2 + health_latency_ticks(bench)):
         bench.feed()
         bench.tick()
+        if bench.mode == int(Mode.FAULT):
+            break
     assert bench.mode == int(Mode.FAULT)
     faults = bench.loop.supervisor.faults
     assert [f.code for f in faults] == ['motor_error'] and reason in faults[0].message
@@ -297,8 +307,14 @@ def test_mixed_robots_arm_hold_their_legs_and_disarm(make_bench, wheels, hips):
         bench.feed()
         sent.append(bench.tick())
     assert bench.mode == int(Mode.BALANCING), bench.loop.supervisor.faults
-    # legs.command_divider 2: the legs take turns, two hips a tick beside both wheels.
-    assert {len(frames) for frames in sent} == {4}
+    # legs.command_divider 2: the legs take turns, two hips a tick beside both wheels; LK
+    # wheels ask one of them for its error bits (0x9A) every health_interval besides.
+    protocol = bench.loop.protocol
+    health = {f for i in bench.loop.motors.ids for f in protocol.health_frames(i)}
+    queries = [sum(f in health for f in frames) for frames in sent]
+    assert [len(frames) - q for frames, q in zip(sent, queries)] == [4] * len(sent)
+    interval = protocol.health_interval
+    assert sum(queries) == (round(50 * bench.period / interval) if interval else 0)
     limit = bench.loop.legs.protocol.torque_limit
     hip_torques = [bench.motors.torque(i, bench.t) for i in bench.hip_ids]
     assert all(0.0 < abs(tau) <= limit + 1e-9 for tau in hip_torques), hip_torques

@@ -134,18 +134,34 @@ class Actuation:
     ``frames`` (the wheels' bus) and ``leg_frames`` (the hips').
     """
 
-    def __init__(self, wheels, legs, poll_wheels: bool):
+    def __init__(self, wheels, legs, poll_wheels: bool, period: float = 0.002):
         self.wheels, self.legs, self.poll_wheels = wheels, legs, poll_wheels
         self._names = [m.name for m in wheels.motors]
         # The left and the right wheel's motor (``wheels.torque_frames`` looks them up by
         # name for every command: the same {motor ID: direction tau} map, built here).
         self._left, self._right = wheels.motors
+        # A protocol whose torque replies lack the error code asks one wheel every
+        # health_interval [s] (the others' ticks pay nothing: torques stays as it is).
+        interval = wheels.protocol.health_interval
+        self._health_every = max(1, round(interval / period)) if interval > 0.0 else 0
+        self._health_ticks = 0
+        if self._health_every:
+            self.torques = self._torques_and_health
 
     def torques(self, r, tau_left: float, tau_right: float) -> None:
         """Command the wheel torques [N m] (forward positive; the directions applied here)."""
         left, right = self._left, self._right
         r.frames += self.wheels.protocol.torque_frames({
             left.motor_id: left.direction * tau_left, right.motor_id: right.direction * tau_right})
+
+    def _torques_and_health(self, r, tau_left: float, tau_right: float) -> None:
+        """Torques, and every _health_every ticks a health query to the next wheel in turn."""
+        Actuation.torques(self, r, tau_left, tau_right)
+        n, every = self._health_ticks, self._health_every
+        self._health_ticks = n + 1
+        if not n % every:
+            ids = self.wheels.ids
+            r.frames += self.wheels.protocol.health_frames(ids[n // every % len(ids)])
 
     def excite(self, r, tau_left: float, tau_right: float, tick: int) -> None:
         """EXCITING: the wheel torques [N m]; resting hips polled as in DISARMED."""

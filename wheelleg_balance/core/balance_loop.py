@@ -64,7 +64,8 @@ class BalanceLoop:
         self.legs_task = LegTask(cfg, self.sensing.hips) if cfg.legs.driven else NoLegs(cfg)
         self.arming = ArmingSupervisor(cfg, self.sensing, self.legs_task)
         self.balancing = Balancing(cfg)
-        self.actuation = Actuation(self.sensing.motors, self.legs_task, self.sensing.from_can)
+        self.actuation = Actuation(self.sensing.motors, self.legs_task, self.sensing.from_can,
+                                   self.period)
         self.excite = ExcitationTask(cfg, self.arming, self.actuation, self.balancing,
                                      self.legs_task, self._act)
         self.excitation = self.excite.excitation

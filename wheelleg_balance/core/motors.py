@@ -100,6 +100,9 @@ class MotorSet:
         #: temperature, an error code is pending, a motor rebooted (it clears the flag after a
         #: pass that found none; until then every motor is judged each tick).
         self.notable = True
+        #: The protocol's health replies (MotorProtocol.decode_health), None where it sends
+        #: no health query: its torque replies carry the error code.
+        self._decode_health = protocol.decode_health if protocol.health_interval else None
 
     @property
     def jump_limit(self) -> float:
@@ -126,6 +129,8 @@ class MotorSet:
         by_id = self.by_id
         feedback = self.protocol.decode_reply(frame, by_id)
         if feedback is None:
+            if self._decode_health is not None:
+                self._take_health(frame)
             return None  # not a reply, or another motor set's (or a stranger's) on the bus
         # MotorFeedback's fields by index (motor_id, position, velocity, torque, temperature,
         # error): a reply or six a tick, each name a descriptor call.
@@ -172,6 +177,19 @@ class MotorSet:
         self.reply_times[motor.motor_id] = t
         self.rx_replies += 1
         return motor
+
+    def _take_health(self, frame: Frame) -> None:
+        """Take a health reply of one of ours: its error code and temperature, for judging."""
+        health = self._decode_health(frame)
+        motor = self.by_id.get(health.motor_id) if health is not None else None
+        if motor is None:
+            return
+        if health.error:
+            motor.error = health.error
+            self.notable = True
+        if health.temperature is not None and motor.feedback is not None:
+            motor.feedback = motor.feedback._replace(temperature=health.temperature)
+            self.notable = True
 
     def commanded_motors(self, frame: Frame) -> List[Motor]:
         """

@@ -5,8 +5,9 @@ A protocol turns wheel-motor torques into CAN frames and motor replies into Moto
 The node wraps ``Frame`` into ``can.Message`` and back; the controllers never see a protocol.
 Beside the frames, a protocol answers what the rest of the package would otherwise branch on
 (``frames_per_tick``, ``position_span`` and ``position_saturates``, ``reply_codes``,
-``speed_range``, ``error_reason``, ``clear_error_frames``, ``set_zero_frames``,
-``make_emulator``, ``from_config``): see docs/can_protocols.md.
+``speed_range``, ``error_reason``, ``health_interval`` with ``health_frames`` and
+``decode_health``, ``clear_error_frames``, ``set_zero_frames``, ``make_emulator``,
+``from_config``): see docs/can_protocols.md.
 Torques are motor torques [N m] with the mounting direction already applied
 (core/actuation.py); positions [rad] and velocities [rad/s] are at the motor's output shaft.
 """
@@ -69,6 +70,19 @@ class MotorFeedback(NamedTuple):
     enabled: Optional[bool] = None
 
 
+class MotorHealth(NamedTuple):
+    """
+    A health reply (``MotorProtocol.decode_health``): what a torque reply lacks.
+
+    motor_id; temperature [deg C] or None when the reply carries none; error: the motor's
+    error code (0: no error), in ``error_reason``'s terms.
+    """
+
+    motor_id: int
+    temperature: Optional[float]
+    error: int
+
+
 class MotorProtocol(ABC):
     """
     Encoder/decoder of one motor family's CAN frames.
@@ -87,6 +101,9 @@ class MotorProtocol(ABC):
     #: nor ends), or, with position_saturates, the span whose ends it sticks at.
     position_span = math.inf
     position_saturates = False
+    #: Time [s] between two health queries (``health_frames``, one motor each, in turn) while
+    #: the tick commands torques; 0: none, the torque replies carry the error code already.
+    health_interval = 0.0
 
     @property
     def torque_limit(self) -> float:
@@ -132,8 +149,18 @@ class MotorProtocol(ABC):
         return False
 
     def frames_per_tick(self, motor_ids: Iterable[int]) -> int:
-        """Return how many frames one control tick sends to ``motor_ids`` (torque_frames)."""
-        return len(self.torque_frames(dict.fromkeys(motor_ids, 0.0)))
+        """Return how many frames one control tick sends to ``motor_ids`` at most."""
+        ids = list(motor_ids)
+        torque = len(self.torque_frames(dict.fromkeys(ids, 0.0)))
+        return torque + (len(self.health_frames(ids[0])) if self.health_interval and ids else 0)
+
+    def health_frames(self, motor_id: int) -> List[Frame]:
+        """Frames that ask motor ``motor_id`` for its error code (health_interval; none here)."""
+        return []
+
+    def decode_health(self, frame: Frame) -> Optional[MotorHealth]:
+        """Decode an answer to health_frames; None for a frame that is none (never raises)."""
+        return None
 
     def clear_error_frames(self, motor_ids: Iterable[int]) -> List[Frame]:
         """Frames that clear the motors' latched errors (none where the protocol has no such)."""

@@ -117,13 +117,15 @@ def scenario_imu_frozen(context, timeouts: Optional[dict] = None) -> Outcome:
 
 
 def _message_fault(context, name: str, fault: str, inject, code: str,
-                   params: Optional[dict] = None, plant=None) -> Outcome:
-    out = Outcome(name, fault, 'FAULT %s, zero torque at the tick after the sample' % code)
+                   params: Optional[dict] = None, plant=None, latency: float = 0.0) -> Outcome:
+    """Inject a fault; ``latency`` [s]: how long the robot may take to learn of it (+ SLACK)."""
+    out = Outcome(name, fault, 'FAULT %s, zero torque at the tick after the sample%s' % (
+        code, ' (within %.0f ms of it)' % (1e3 * latency) if latency else ''))
 
     def run(rig):
         t_fault = time.time()
         inject(rig)
-        _zero_reaction(out, rig, t_fault, SLACK, code)
+        _zero_reaction(out, rig, t_fault, SLACK + latency, code)
     return _on_armed_rig(context, out, run, plant=plant, **(params or {}))
 
 
@@ -204,17 +206,19 @@ def _rename_joints(msg: JointState) -> None:
 #: joint_states, the torque within every model's limit.
 PROTOCOL_WHEELS = {name: {'can.protocol': name, 'wheel_state_source': 'joint_states',
                           'max_wheel_torque': 4.0} for name in ('lk', 'cybergear', 'damiao')}
-#: An error code of each protocol's replies and its reason (LK's torque reply has none).
+#: An error code of each protocol's replies and its reason (LK's: its state-1 reply's, which
+#: the tick asks for every health_interval).
 PROTOCOL_ERRORS = {'cybergear': (0b000100, 'over-temperature'),
-                   'damiao': (0xA, 'over-current')}
-#: The motor-fault scenarios run on each of PROTOCOL_WHEELS: not an LK error code (none in
-#: its reply), nor an LK reboot (its absolute encoder and power-up torque mode lose nothing
-#: the tick needs: test_protocols_on_the_tick.py shows it balancing on). The second commander
+                   'damiao': (0xA, 'over-current'), 'lk': (0x01, 'under-voltage')}
+#: The motor-fault scenarios run on each of PROTOCOL_WHEELS: not an LK reboot (its absolute
+#: encoder and power-up torque mode lose nothing the tick needs: test_protocols_on_the_tick.py
+#: shows it balancing on). The second commander
 #: runs on each (balance_node a process on udp_multicast, which hands the node its own frames
 #: back: extended ones too).
 MOTOR_FAULTS = ('motor_silent', 'motor_error', 'motor_rebooted', 'motor_over_temperature',
                 'second_commander')
-PROTOCOL_FAULTS = {'lk': ('motor_silent', 'motor_over_temperature', 'second_commander'),
+PROTOCOL_FAULTS = {'lk': ('motor_silent', 'motor_error', 'motor_over_temperature',
+                          'second_commander'),
                    'cybergear': MOTOR_FAULTS, 'damiao': MOTOR_FAULTS}
 
 
@@ -319,9 +323,11 @@ def scenario_motor_error(context, wheels: Optional[str] = None) -> Outcome:
         if wheels is None:
             _motor_8_byte_replies(rig, MOTOR_IDS[1])
         motor.set_error(code)
+    # A protocol whose torque reply lacks the code asks each wheel every 2 health_interval.
+    interval = make_protocol(wheels).health_interval if wheels is not None else 0.0
     out = _message_fault(context, _wheels('motor_error', wheels), 'right motor replies error '
                          'code %d (%s)' % (code, reason), inject, 'motor_error',
-                         params=PROTOCOL_WHEELS.get(wheels))
+                         params=PROTOCOL_WHEELS.get(wheels), latency=2.0 * interval)
     return out
 
 
