@@ -129,6 +129,36 @@ def test_a_motor_error_code_faults_with_the_decoded_reason(code, reason):
     assert req.success, req.message   # cleared by the drive: re-arm allowed
 
 
+def test_a_drive_error_at_rest_refuses_every_arm_request_until_the_drive_clears_it():
+    # At rest the node asks the motors every 20 ms (exit frames): one reply in ten ticks
+    # carries the code. The refusal must hold on every tick between them, not only on the
+    # tick that read the reply (it did on 3 ticks of 40 before).
+    bench = LoopBench()
+    for e in bench.motors.emulators.values():
+        e.reply_temperature = True   # 8-byte replies: temperature and error code
+    bench.motors.motor(LEFT).set_error(2)
+    for _ in range(15):
+        bench.feed()
+        bench.tick()
+    refused = []
+    for _ in range(40):
+        bench.feed()
+        req = bench.request(True)
+        bench.tick()
+        assert req.done
+        refused.append(not req.success and 'over-current' in req.message)
+    assert all(refused), '%d of 40 arm requests accepted' % refused.count(False)
+    assert bench.mode == int(Mode.DISARMED)
+    bench.motors.motor(LEFT).set_error(0)   # the drive's error cleared
+    for _ in range(15):                      # the next poll's reply says so
+        bench.feed()
+        bench.tick()
+    bench.feed()
+    req = bench.request(True)
+    bench.tick()
+    assert req.success, req.message
+
+
 def test_a_rebooted_motor_faults_and_is_never_alive_again():
     # The left wheel at 3 rad: after the reboot it reads its angle modulo a rotor turn.
     bench = armed_bench(wheel_angle=3.0)

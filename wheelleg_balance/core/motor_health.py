@@ -77,7 +77,8 @@ def judge_motors(sets, wheels, name, commanding: bool = False
     then counts as rebooted; after a disarm that is expected).
     scale: the wheels' torque limit factor [-]; hot: why a motor is at temp_max (None: none);
     problems: (fault code, text) of each error code and reboot, and ('', text) for heat. A
-    motor's error code is taken (reset) as it is judged.
+    motor's error code is taken (reset) as it is judged; the drive's error (``drive_error``:
+    the newest reply's code) is judged again at every call until a reply clears it.
     """
     problems, hot, scale = [], None, 1.0
     for motors, model in sets:
@@ -91,9 +92,11 @@ def judge_motors(sets, wheels, name, commanding: bool = False
                 if m.error or m.rebooted is not None:
                     notable = True   # judged once a reply comes
                 continue
-            code = m.error
+            code = m.error or m.drive_error
             if code:
                 m.error = 0
+                if m.drive_error:
+                    notable = True   # still reported: judged again next tick
                 problems.append((MOTOR_ERROR, '%s error %d: %s'
                                  % (name(m), code, motors.protocol.error_reason(code))))
             if m.switched_off:

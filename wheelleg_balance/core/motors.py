@@ -36,7 +36,7 @@ class Motor:
     """One motor: name, CAN ID, direction (+1/-1) and what its replies said."""
 
     __slots__ = ('name', 'motor_id', 'direction', 'last_reply', 'replies', 'feedback',
-                 'rebooted', 'error', 'switched_off')
+                 'rebooted', 'error', 'drive_error', 'switched_off')
 
     def __init__(self, name: str, motor_id: int, direction: int):
         self.name = name
@@ -50,6 +50,10 @@ class Motor:
         #: The newest non-zero error code a reply carried since the tick read it (0: none), so
         #: that a clean reply after it within one tick does not hide it.
         self.error = 0
+        #: The error code the drive reports now: the newest reply's that carries a code (0: none).
+        #: It stays until a reply says the error is gone (a drive keeps its error latched until
+        #: cleared), so every tick judges it and arming is refused while it lasts.
+        self.drive_error = 0
         #: A reply said "disabled" after one said "enabled" (protocols whose replies carry
         #: the state: DaMiao, CyberGear); motor_health.judge_motors takes (resets) it.
         self.switched_off = False
@@ -163,15 +167,19 @@ class MotorSet:
         motor.last_reply = t
         motor.replies += 1
         motor.feedback = feedback
-        if feedback[5]:
-            motor.error = feedback[5]
+        code = feedback[5]
+        if code:
+            motor.error = motor.drive_error = code
             self.notable = True
-        elif feedback[6] is False and prev is not None and prev[6]:
-            # Enabled, now disabled without an error code (that one names its cause): a
-            # reboot (DaMiao and CyberGear power up disabled) or the drive's own protection;
-            # within +-pi a DaMiao reboot leaves no position jump.
-            motor.switched_off = True
-            self.notable = True
+        else:
+            if code is not None and motor.drive_error:
+                motor.drive_error = 0   # the drive's error is cleared
+            if feedback[6] is False and prev is not None and prev[6]:
+                # Enabled, now disabled without an error code (that one names its cause): a
+                # reboot (DaMiao and CyberGear power up disabled) or the drive's own
+                # protection; within +-pi a DaMiao reboot leaves no position jump.
+                motor.switched_off = True
+                self.notable = True
         if feedback[4] is not None:   # a temperature
             self.notable = True
         self.reply_times[motor.motor_id] = t
@@ -184,6 +192,7 @@ class MotorSet:
         motor = self.by_id.get(health.motor_id) if health is not None else None
         if motor is None:
             return
+        motor.drive_error = health.error
         if health.error:
             motor.error = health.error
             self.notable = True
