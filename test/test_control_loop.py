@@ -119,8 +119,9 @@ def test_the_state_and_the_joints_cross_the_link_in_one_message():
     from wheelleg_balance.nodes import control_link as L
     ros_end, loop_end = (L.Link(s) for s in L.socket_pair())
     state = tick_io.LoopState(**{f: 0.5 * k for k, f in enumerate(tick_io.STATE_FIELDS)})
+    state.time = 12.5
     odom = tick_io.Odom(x=2.0, yaw_rate=-0.5)
-    values = tick_io.state_frame(state, odom, 12.5, tick_io.PUBLISH_ODOM)
+    values = tick_io.state_frame(state, odom, tick_io.PUBLISH_ODOM)
     assert len(values) == len(tick_io.FRAME_FIELDS)
     assert values[tick_io.MODE] == 0.5 * tick_io.MODE and values[tick_io.TIME] == 12.5
     assert values[tick_io.ODOM] == [2.0, 0.0, 0.0, 0.0, -0.5]

@@ -137,6 +137,7 @@ class BalanceLoop:
         if mode is SITTING and legs.sat_down:
             r.events.append(('info', legs.finish_sit_down()))
             self._act(arming.disarm(), now, s)
+        r.state.time = now
         self._publish(s)
         return r
 

@@ -4,8 +4,8 @@ What goes into a control tick and what comes out of it, defined once (no rclpy, 
 ``TickInputs`` is what arrived since the last tick, ``TickResult`` what the tick produced
 (core/balance_loop.py). The **state frame** is what the control process sends the ROS side
 after a tick (nodes/control_link.py carries it, nodes/balance_node.py publishes it): the
-``LoopState`` values in ``STATE_FIELDS`` order (what ~/state publishes), then the odometry in
-``ODOM_FIELDS`` order, then the tick's time [s] and the publication flags. ``state_frame``
+``LoopState`` values in ``STATE_FIELDS`` order (what ~/state publishes, the tick's time [s]
+last), then the odometry in ``ODOM_FIELDS`` order, then the publication flags. ``state_frame``
 builds one and the index constants below read one, so the layout is written down here only.
 """
 from dataclasses import dataclass, field, fields
@@ -92,7 +92,10 @@ class LoopState:
     CONTROLLER_NAMES of the active controller; mode: core/safety.Mode the commands were made in;
     x_dot_ref, yaw_rate_ref: the shaped references [m/s, rad/s]; roll [rad]; l_ref: the shaped
     height reference [m]; l_target: the commanded height [m]; excitation: the identification
-    phase running (core/excitation.py PHASE_INDEX: 1 stand, 2 tail, 3 balance; 0 none).
+    phase running (core/excitation.py PHASE_INDEX: 1 stand, 2 tail, 3 balance; 0 none); time:
+    the tick's time [s], on the loop's clock in the tick and the state frame, and on ~/state
+    the ROS time of the tick (its joint_states' stamp; nodes/state_publisher.py): the fit of an
+    identification phase reads it, not the receipt times, which stretch when a simulator lags.
     """
 
     theta: float = math.nan
@@ -113,6 +116,7 @@ class LoopState:
     l_ref: float = math.nan
     l_target: float = math.nan
     excitation: float = 0.0
+    time: float = math.nan
 
     def values(self) -> List[float]:
         """Return the fields' values in STATE_FIELDS order."""
@@ -158,12 +162,13 @@ class TickResult:
 #: The odometry's values in the state frame, after the state's.
 ODOM_FIELDS = ('x', 'y', 'yaw', 'x_dot', 'yaw_rate')
 #: Every value of the state frame by name, in order.
-FRAME_FIELDS = STATE_FIELDS + tuple('odom_' + name for name in ODOM_FIELDS) + ('time', 'flags')
-#: Where the parts of a state frame stand: the state, the odometry, the time, the flags.
+FRAME_FIELDS = STATE_FIELDS + tuple('odom_' + name for name in ODOM_FIELDS) + ('flags',)
+#: Where the parts of a state frame stand: the state (with the tick's time), the odometry,
+#: the flags.
 N_STATE = len(STATE_FIELDS)
 ODOM = slice(N_STATE, N_STATE + len(ODOM_FIELDS))
-TIME = N_STATE + len(ODOM_FIELDS)
-FLAGS = TIME + 1
+TIME = STATE_FIELDS.index('time')
+FLAGS = N_STATE + len(ODOM_FIELDS)
 #: The index of the mode in a state frame (and in ~/state).
 MODE = STATE_FIELDS.index('mode')
 #: Flags of a state frame: which topics the ROS side publishes from it.
@@ -171,7 +176,6 @@ PUBLISH_STATE = 1
 PUBLISH_ODOM = 2
 
 
-def state_frame(state: LoopState, odom: Odom, time: float, flags: int) -> List[float]:
-    """Return the state frame of a tick: the state, the odometry, the time [s], the flags."""
-    return state.values() + [odom.x, odom.y, odom.yaw, odom.x_dot, odom.yaw_rate, time,
-                             float(flags)]
+def state_frame(state: LoopState, odom: Odom, flags: int) -> List[float]:
+    """Return the state frame of a tick: the state (with its time), the odometry, the flags."""
+    return state.values() + [odom.x, odom.y, odom.yaw, odom.x_dot, odom.yaw_rate, float(flags)]

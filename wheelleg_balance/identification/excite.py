@@ -54,7 +54,8 @@ class _Recorder:
                         + list(sim.wheel_velocities()) + list(sim.leg_velocities()) + efforts)
 
     def command(self, t: float, values: Dict[str, float]) -> None:
-        self.state.add(t, [values.get(n, math.nan) for n in STATE_FIELDS])
+        row = dict(values, time=t)   # the tick's time, as balance_node's ~/state has it
+        self.state.add(t, [row.get(n, math.nan) for n in STATE_FIELDS])
 
     def record(self) -> Record:
         return Record(self.phase, {IMU: self.imu.series(), JOINTS: self.joints.series(),

@@ -163,20 +163,72 @@ def simulate_wheel(t: np.ndarray, w0: float, torque, inertia: float, damping: fl
     return np.concatenate([[w0], w[SUBSTEPS - 1::SUBSTEPS]])
 
 
-def fit_stand(rec: Record) -> Dict[str, Estimate]:
-    """Fit I_w, b and the delay from the stand phase (see the module docstring)."""
+def shank_angles(rec: Record, leg: FiveBarLeg) -> List[np.ndarray]:
+    """
+    Return the [left, right] front shanks' angles [rad] below base_link's forward horizontal.
+
+    The shank carries the wheel's axle and its motor's stator (sim/robot.xml): on a stand with
+    the hips unpowered it swings under the wheel's reaction, and the wheel's speed in space is
+    the joint's speed plus the shank's rate. From the hip angles recorded and the five-bar's
+    geometry (``FiveBarLeg.pose``); zeros without hip angles in the recording.
+    """
+    js = rec[JOINTS]
+    out = []
+    for side in ('left', 'right'):
+        names = ['%s_leg_%s_joint.position' % (side, end) for end in ('front', 'rear')]
+        if not all(n in js.columns for n in names):
+            out.append(np.zeros_like(js.t))
+            continue
+        hips = [_polled(js.t, js[n]) for n in names]
+        poses = np.array([leg.pose(f, r) for f, r in zip(*hips)])
+        fx, fz, xc, zc = poses[:, 0], poses[:, 1], poses[:, 4], poses[:, 5]
+        phi = np.unwrap(np.arctan2(-(zc - fz), xc - fx))   # _knee_angles' phi
+        out.append(phi if np.all(np.isfinite(phi)) else np.zeros_like(js.t))
+    return out
+
+
+def _polled(t: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """
+    Return a polled angle [rad] linear between its polls (the samples where it changed).
+
+    Off balancing the hips are polled at 50 Hz while joint_states comes every tick: the held
+    values would make the shank's rate a train of spikes.
+    """
+    knots = np.flatnonzero(np.concatenate([[True], np.diff(q) != 0.0]))
+    knots = np.union1d(knots, [len(q) - 1])
+    return np.interp(t, t[knots], q[knots])
+
+
+def fit_stand(rec: Record, leg: Optional[FiveBarLeg] = None) -> Dict[str, Estimate]:
+    """
+    Fit I_w, b and the delay from the stand phase (see the module docstring).
+
+    leg: the five-bar's geometry (None: FiveBarLeg's defaults, sim/robot.xml's). The wheel's
+    speed in space is w + phi_dot (phi: its shank's angle, ``shank_angles``; the body is held):
+    I_w (w + phi_dot)' = tau(t - delay) - b w, so the state simulated is w + phi_dot, driven by
+    tau(t - delay) + b phi_dot.
+    """
     t, speeds, torques = _wheel_columns(rec)
     st_t = rec[STATE].t
-    inputs = [held_integral(st_t, u) for u in torques]
+    phis = shank_angles(rec, leg if leg is not None else FiveBarLeg())
+    rates = [np.gradient(phi, t) for phi in phis]
+    spins = [w + r for w, r in zip(speeds, rates)]   # the wheels' speeds in space [rad/s]
+    commands = [held_integral(st_t, u) for u in torques]
+
+    def drive(command, phi, damping, delay):
+        # The integral of tau(t - delay) + b phi_dot, at the simulation's shifted times.
+        return lambda s: command(s) + damping * np.interp(s + delay, t, phi)
+
+    def predict(p):
+        inertia, damping, delay = p
+        return [simulate_wheel(t, w[0], drive(u, phi, damping, delay), inertia, damping, delay)
+                for w, u, phi in zip(spins, commands, phis)]
 
     def residuals(p):
-        inertia, damping, delay = p
-        return np.concatenate([
-            simulate_wheel(t, w[0], u, inertia, damping, delay) - w
-            for w, u in zip(speeds, inputs)])
+        return np.concatenate([pred - w for pred, w in zip(predict(p), spins)])
 
     # A first guess from the first second: I = integral of tau / change of speed.
-    w, u = speeds[0], inputs[0]
+    w, u = spins[0], commands[0]
     k = min(len(t) - 1, int(round(1.0 / np.median(np.diff(t)))))
     guess = max(abs(u(np.array([t[k]]))[0] - u(np.array([t[0]]))[0]) / max(abs(w[k] - w[0]),
                                                                            1e-6), 1e-4)
@@ -185,8 +237,8 @@ def fit_stand(rec: Record) -> Dict[str, Estimate]:
                            x_scale=[guess, 0.01, 0.001])
     half = _intervals(result, 3)
     inertia, damping, delay = result.x
-    curves = [('wheel %d' % k, t, w, simulate_wheel(t, w[0], u, inertia, damping, delay))
-              for k, (w, u) in enumerate(zip(speeds, inputs))]
+    curves = [('wheel %d' % k, t, w, pred)
+              for k, (w, pred) in enumerate(zip(spins, predict(result.x)))]
     return {'_series': Series('wheel speed', 'rad/s', curves),
             'robot.wheel_inertia': Estimate(inertia, half[0], 'kg m^2'),
             'robot.wheel_damping': Estimate(damping, half[1], 'N m s/rad'),
@@ -408,7 +460,7 @@ def identify(records: Dict[str, Record], leg: FiveBarLeg,
     each fit's RMS residual; ``phases``: the phases fitted. series: filled with each phase's
     measured signal against the fit's prediction ({phase: Series}, for plots).
     """
-    parts = {'stand': fit_stand(records['stand'])}
+    parts = {'stand': fit_stand(records['stand'], leg)}
     if 'tail' in records:
         parts['tail'] = fit_tail(records['tail'], parts['stand'])
     if 'balance' in records and 'tail' in parts:

@@ -48,6 +48,12 @@ class Series:
             raise KeyError('no column %r (there are %s)' % (name, ', '.join(self.columns))) \
                 from None
 
+    def ordered(self) -> 'Series':
+        """Return the samples by time, a repeated time once (as received, they may not be)."""
+        k = np.argsort(self.t, kind='stable')
+        keep = k[np.concatenate([[True], np.diff(self.t[k]) > 0])] if len(k) else k
+        return Series(self.t[keep], {n: c[keep] for n, c in self.columns.items()})
+
     def at(self, t: np.ndarray, name: str) -> np.ndarray:
         """Return the column ``name`` linearly interpolated at times t [s]."""
         return np.interp(t, self.t, self[name])
@@ -128,8 +134,10 @@ def read_mcap(path, phase: str, start: float = -np.inf, end: float = np.inf,
                                + list(msg.effort))
             elif len(msg.data) == len(STATE_FIELDS):
                 state.add(t_log, msg.data)
-            elif len(msg.data) == len(STATE_FIELDS) - 1:   # before ~/state's ``excitation``
-                state.add(t_log, list(msg.data) + [0.0])
+            elif len(msg.data) == len(STATE_FIELDS) - 1:   # before ~/state's ``time``
+                state.add(t_log, list(msg.data) + [t_log])
+            elif len(msg.data) == len(STATE_FIELDS) - 2:   # before ~/state's ``excitation``
+                state.add(t_log, list(msg.data) + [0.0, t_log])
     if joints is None:
         raise KeyError('%s has no joint_states' % path)
     return Record(phase, {IMU: imu.series(), JOINTS: joints.series(), STATE: state.series()})

@@ -178,7 +178,7 @@ class BalanceNode(Node):
             self._loop_mode = int(values[MODE])
             if not self.context.ok() or self._closing.is_set():
                 return
-            self._publisher.publish(values, joints, self.get_clock().now().to_msg())
+            self._publisher.publish(values, joints)
         elif tag == L.STATUS:
             self._status = payload
             self._loop_mode = int(payload['mode_index'])

@@ -296,7 +296,7 @@ class ControlRunner:
             if flags & PUBLISH_STATE:
                 pos, vel, eff = self.loop.joint_values(now)
                 joints = pos + vel + eff
-            self.link.send_state(state_frame(result.state, result.odom, now, flags), joints)
+            self.link.send_state(state_frame(result.state, result.odom, flags), joints)
 
     def _on_stall(self, lateness: float) -> None:
         self.link.send_object(L.EVENT, ('warn', 'control loop: a tick came %.1f ms late'

@@ -12,11 +12,20 @@ frame nobody reads: the ROS side wakes for nothing, and rclpy's publish with its
 costs some 0.3 ms a frame here after a sleep, when its code is out of the caches
 (docs/benchmarks.md). The counts follow each publisher's "matched" event; an rmw without that
 event counts as subscribed, always.
+
+Every message of a frame is stamped with the ROS time of its tick, and ~/state's ``time`` is
+that stamp [s]: the tick's time on the loop's clock (core/tick_io.py) taken to ROS time, the
+offset between the clocks read at publication (CLOCK_MONOTONIC against the node's clock); in
+lockstep (``clock_source: imu_stamp``) the loop's clock is already the simulator's ROS
+stamps. So a recording of a phase is on the ticks' times, which a lagging simulator or a busy
+ROS side does not stretch (identification/live.py).
 """
 import math
+import time
 from typing import Callable, Optional
 
 from nav_msgs.msg import Odometry
+from rclpy.time import Time
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
@@ -24,7 +33,8 @@ from . import lean
 from .transforms import TfPublisher
 from ..core.config import BalanceConfig
 from ..core.sensing import joint_names
-from ..core.tick_io import FLAGS, N_STATE, ODOM, PUBLISH_ODOM, PUBLISH_STATE, STATE_FIELDS
+from ..core.tick_io import FLAGS, N_STATE, ODOM, PUBLISH_ODOM, PUBLISH_STATE, STATE_FIELDS, \
+    TIME
 
 
 class StatePublisher:
@@ -58,6 +68,8 @@ class StatePublisher:
         self.matched.setdefault('tf', 0)   # no tf2_msgs: no /tf publisher
         self._tf = TfPublisher(node, cfg, lambda msg_type, topic, qos: self._create(
             msg_type, topic, qos, 'tf'))
+        self._clock = node.get_clock()
+        self._on_stamps = cfg.loop.clock_source == 'imu_stamp'
 
     def _create(self, msg_type, topic: str, qos, key: str):
         """Create a publisher whose subscriptions are counted in ``matched[key]``."""
@@ -89,8 +101,17 @@ class StatePublisher:
             self._wanted_sent = wanted
             self._on_wanted(wanted)
 
-    def publish(self, values, joints, stamp) -> None:
+    def _tick_stamp(self, tick: float) -> float:
+        """Return the ROS time [s] of a tick at ``tick`` on the loop's clock."""
+        if self._on_stamps and math.isfinite(tick):
+            return tick
+        now = self._clock.now().nanoseconds * 1e-9
+        return now - (time.monotonic() - tick) if math.isfinite(tick) else now
+
+    def publish(self, values, joints) -> None:
         """Publish a state frame (an array('d'): float64[] fields take it unchecked)."""
+        values[TIME] = t = self._tick_stamp(values[TIME])
+        stamp = Time(nanoseconds=int(round(t * 1e9))).to_msg()
         flags = int(values[FLAGS])
         x, y, yaw, x_dot, yaw_rate = values[ODOM]
         m = self.matched
