@@ -131,6 +131,8 @@ class SimNode(Node):
             reply_temperature=fw.reply_temperature, power_up=legs.power_up)
         for e in self.motors.emulators.values():
             e.miswired = e.motor_id == cfg.fault.miswired_motor_id
+            if e.motor_id == cfg.fault.wrong_mode_motor_id:   # SimConfig checked it has one
+                e.set_control_mode(cfg.fault.wrong_mode)
         h = cfg.hand
         self.motors.hand = Hand(len(JOINTS), h.kp, h.kd, h.max_torque)
         self._hand_joints = {name: k for k, name in enumerate(
