@@ -12,7 +12,10 @@ bench) through the motor faults: silent, error code, over-temperature.
 """
 import math
 import os
+import pathlib
 import struct
+import subprocess
+import sys
 import threading
 import time
 
@@ -203,6 +206,7 @@ class _HereProtocol(MotorProtocol):
     """
 
     name = 'bringup_test_here'
+    torque_limit = 12.0   # [N m]: within the simulated wheels' actuators (sim/layout.py)
 
     def enable_frames(self, motor_ids):
         return [Frame(0x600 + i, b'\x01') for i in motor_ids]
@@ -212,7 +216,7 @@ class _HereProtocol(MotorProtocol):
                                                      for i in motor_ids]
 
     def torque_frames(self, torques):
-        return [Frame(0x600 + i, struct.pack('<h', round(1e3 * max(-30.0, min(30.0, t)))
+        return [Frame(0x600 + i, struct.pack('<h', round(1e3 * max(-12.0, min(12.0, t)))
                                              if math.isfinite(t) else 0))
                 for i, t in torques.items()]
 
@@ -244,7 +248,7 @@ class _HereProtocol(MotorProtocol):
             'in test mode %d: write 0 to its mode' % mode)
 
     def make_emulator(self, motor_id, **options):
-        return _HereMotor(motor_id, 30.0, **options)
+        return _HereMotor(motor_id, self.torque_limit, **options)
 
 
 class _HereMotor(EmulatedMotor):
@@ -407,3 +411,25 @@ def test_a_hip_on_the_wheels_bus_is_found_there_in_its_own_protocol():
     fix = 'connect it to %s, or set legs.can.channel: %s' % (legs_bus, wheels_bus)
     assert rear.fix[0] == fix
     assert [checks[item].level for item in LABELS[:5]] == [PASS] * 5
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_a_protocol_defined_here_passes_bringup_sim(tmp_path):
+    # sim_node is another process: bring-up names the protocol (module:class, this module on
+    # the children's path) and has sim_node load it too.
+    from wheelleg_balance.validation import child_env
+    env = child_env()
+    env['PYTHONPATH'] = os.pathsep.join((env['PYTHONPATH'], str(pathlib.Path(__file__).parent)))
+    out = tmp_path / 'robot.yaml'
+    proc = subprocess.run(
+        [sys.executable, '-m', 'wheelleg_balance.bringup.cli', '--sim', '--output', str(out),
+         '--protocol', 'test_bringup_protocols:_HereProtocol',
+         '--sim-param', 'can.protocol=%s' % _HereProtocol.name],
+        capture_output=True, text=True, timeout=240, cwd=tmp_path, env=env)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert '[FAIL]' not in proc.stdout
+    assert proc.stdout.count('(%s): position' % _HereProtocol.name) == 2   # both wheels
+    assert '[PASS] right wheel (ID 2): turned forward' in proc.stdout
+    text = out.read_text()
+    assert 'protocol: %s' % _HereProtocol.name in text

@@ -35,6 +35,7 @@ from .iplink import check_link, ip_link_json
 from .motor_checks import channels
 from .report import Check, FAIL, Report
 from .session import BringUp, ConsoleOperator, Refused
+from ..core.protocols import import_protocol
 from ..core.schema import from_flat, nest
 from ..processes import end_process
 from ..sim.config import SimConfig
@@ -156,13 +157,14 @@ def _parse_overrides(items: List[str]) -> dict:
     return out
 
 
-def _start_sim(params: dict, folder: pathlib.Path) -> subprocess.Popen:
+def _start_sim(params: dict, folder: pathlib.Path, protocols: List[str]) -> subprocess.Popen:
     path = folder / 'sim.yaml'
     path.write_text(yaml.safe_dump({'sim_node': {'ros__parameters': nest(params)}},
                                    default_flow_style=None))
     log = open(folder / 'sim_node.log', 'w')
-    return subprocess.Popen([sys.executable, '-m', 'wheelleg_balance.nodes.sim_node',
-                             '--ros-args', '--params-file', str(path)], stdout=log,
+    loads = [arg for spec in protocols for arg in ('--protocol', spec)]
+    return subprocess.Popen([sys.executable, '-m', 'wheelleg_balance.nodes.sim_node'] + loads
+                            + ['--ros-args', '--params-file', str(path)], stdout=log,
                             stderr=subprocess.STDOUT,
                             env=child_env(dict(os.environ, PYTHONUNBUFFERED='1')))
 
@@ -190,6 +192,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument('--sim-config', type=pathlib.Path, default=None,
                         help='--sim: a sim_node params file laid over its defaults, e.g. '
                         "the package's config/sim_lk_damiao.yaml")
+    parser.add_argument('--protocol', action='append', default=[], metavar='MODULE:CLASS',
+                        help='register a protocol defined outside the package (its module '
+                        'on the path; --sim: sim_node loads it too)')
     parser.add_argument('--can-group', default=None, help='--sim: the udp_multicast group')
     parser.add_argument('--udp-port', type=int, default=None, help='--sim: the UDP port')
     args = parser.parse_args(remove_ros_args(['bringup'] + argv)[1:])
@@ -199,6 +204,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     ros = None
     ios: List = []
     try:
+        for spec in args.protocol:
+            import_protocol(spec)
         if args.sim:
             pid = os.getpid()
             group = args.can_group or '239.74.%d.%d' % ((pid >> 8) % 256, pid % 256 or 1)
@@ -225,7 +232,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         ros = RosSide(['bringup', '--ros-args'] + _ros_args(argv))
         if args.sim:
             tmp = tempfile.TemporaryDirectory(prefix='bringup_sim_')
-            sim_proc = _start_sim(params, pathlib.Path(tmp.name))
+            sim_proc = _start_sim(params, pathlib.Path(tmp.name), args.protocol)
             end = time.monotonic() + SIM_START_TIMEOUT
             while ros.imu_count == 0 and time.monotonic() < end and sim_proc.poll() is None:
                 time.sleep(0.05)

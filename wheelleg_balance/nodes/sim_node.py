@@ -56,6 +56,7 @@ bursts: when the wait or the CPU makes it late it simply runs slower than real t
 (``real_time_factor``). The closed loop is then the same on a loaded machine as on an idle one
 (docs/simulation.md).
 """
+import argparse
 from collections import Counter
 import sys
 import threading
@@ -369,6 +370,21 @@ class SimNode(Node):
                     self.can_errors += 1
 
 
+def load_protocols(argv) -> None:
+    """
+    Register the protocols named by ``--protocol module:Class`` (before the parameters).
+
+    A protocol defined outside the package (a test's, a builder's) whose module is on the
+    path; its name is then a value of ``can.protocol`` / ``legs.can.protocol``.
+    """
+    from rclpy.utilities import remove_ros_args
+    from ..core.protocols import import_protocol
+    parser = argparse.ArgumentParser(prog='sim_node')
+    parser.add_argument('--protocol', action='append', default=[], metavar='MODULE:CLASS')
+    for spec in parser.parse_args(remove_ros_args(['sim_node'] + list(argv))[1:]).protocol:
+        import_protocol(spec)
+
+
 def main(args=None) -> None:
     """Run sim_node until Ctrl-C."""
     # The CAN thread answers ~1000 frames/s: hand the GIL over sooner than the default 5 ms so
@@ -380,6 +396,7 @@ def main(args=None) -> None:
     rclpy.init(args=args)
     node = None
     try:
+        load_protocols(sys.argv[1:] if args is None else args)
         node = SimNode()
         node.start()
         rclpy.spin(node)
