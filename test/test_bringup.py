@@ -16,6 +16,7 @@ import json
 import math
 import os
 import pathlib
+import re
 import subprocess
 import sys
 import threading
@@ -378,9 +379,12 @@ def test_refuses_beside_a_balance_node_or_motor_traffic():
 
 # ---- bringup --sim -------------------------------------------------------------------------
 
-def _bringup_sim(tmp_path, *params):
+def _bringup_sim(tmp_path, *params, robot=None):
+    """Run bringup --sim with sim_node parameters (NAME=VALUE), on robot's params file."""
     out = tmp_path / 'robot.yaml'
     args = [sys.executable, '-m', 'wheelleg_balance.bringup.cli', '--sim', '--output', str(out)]
+    if robot is not None:
+        args += ['--sim-config', robot]
     for p in params:
         args += ['--sim-param', p]
     proc = subprocess.run(args, capture_output=True, text=True, timeout=240, cwd=tmp_path,
@@ -428,6 +432,61 @@ def test_bringup_sim_catches_a_miswired_motor(tmp_path, motor_id, item, param, f
     section, name, value = fixed
     assert getattr(getattr(cfg, section), name) == value
     assert out.read_text().splitlines()[2].startswith('# FAIL %s' % item)
+
+
+def _robot_file(robot):
+    """Return the package's sim_node params file of another simulated robot (main_job's)."""
+    from wheelleg_balance.validation.paper.main_job.params import config_dir
+    return 'sim_%s.yaml' % robot, str(config_dir() / ('sim_%s.yaml' % robot))
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_bringup_sim_passes_with_lk_wheels_and_damiao_hips(tmp_path):
+    name, path = _robot_file('lk_damiao')
+    proc, out = _bringup_sim(tmp_path, robot=path)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert '[FAIL]' not in proc.stdout and name in proc.stdout.splitlines()[0]
+    levels = _levels(proc.stdout)
+    for item in ('left wheel (ID 1)', 'right rear hip (ID 6)', 'IMU (/imu)'):
+        assert levels[item] <= {'PASS', 'INFO'} and 'PASS' in levels[item], (item, proc.stdout)
+    assert '(ID 1): answers on' in proc.stdout and '(lk): position' in proc.stdout
+    assert proc.stdout.count('(damiao): position') == 4
+    # The written config speaks both protocols with the robot's figures.
+    cfg = robot_config.build(robot_config.read_params(out))
+    assert (cfg.can.protocol, cfg.legs.protocol) == ('lk', 'damiao')
+    assert cfg.can.lk.torque_constant == 0.32 and cfg.safety.max_wheel_torque == 5.28
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_bringup_sim_finds_a_cybergear_hip_in_the_wrong_mode(tmp_path):
+    _, path = _robot_file('c620_cybergear')
+    proc, out = _bringup_sim(tmp_path, 'fault.wrong_mode_motor_id=5', robot=path)
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    fails = [line for line in proc.stdout.splitlines() if line.startswith('[FAIL]')]
+    assert len(fails) == 1 and fails[0].startswith('[FAIL] right front hip (ID 5):'), \
+        proc.stdout
+    assert 'in speed mode (run_mode = 2), not operation control: stop it (type 4) and write ' \
+        'run_mode 0' in fails[0]
+    assert proc.stdout.count('(cybergear): position') == 3   # the other hips
+    cfg = robot_config.build(robot_config.read_params(out))
+    assert (cfg.can.protocol, cfg.legs.protocol) == ('dji_c620', 'cybergear')
+
+
+def test_a_wrong_mode_goes_on_a_motor_with_a_mode_register_only():
+    from wheelleg_balance.bringup.sim import sim_params
+    from wheelleg_balance.sim.config import SimConfig
+    from wheelleg_balance.core.schema import check, from_flat
+    flat = sim_params('239.1.2.3', 40001, {'legs.can.protocol': 'damiao',
+                                           'fault.wrong_mode_motor_id': 4})
+    assert check(from_flat(SimConfig, flat)) == []
+    for wrong, words in (({'fault.wrong_mode_motor_id': 4}, 'motor 4 has no control mode'),
+                         ({'fault.wrong_mode_motor_id': 7}, 'is none of the motors'),
+                         ({'legs.can.protocol': 'damiao', 'fault.wrong_mode_motor_id': 4,
+                           'fault.wrong_mode': 9}, 'DaMiao CTRL_MODE is one of [1, 2, 3, 4]')):
+        with pytest.raises(ValueError, match=re.escape(words)):
+            sim_params('239.1.2.3', 40001, wrong)
 
 
 # ---- the simulator's side: the stand and the hand ------------------------------------------

@@ -1,35 +1,38 @@
 """
 bringup on every motor protocol (issue 31): the motor set's protocol says every frame and reply.
 
-session.BringUp runs on python-can's virtual bus against each protocol's emulated firmware in
-a thread (core/protocols' ``make_emulator`` for LK, CyberGear and DaMiao; sim/motor_emulator's
-MitMotorBank and DjiC620Emulator for MIT and the C620): wheels and hips of two protocols on one
-bus are found and checked, a DaMiao or CyberGear motor in the wrong control mode is named with
-the fix and never enabled, a motor's fault is told in its protocol's words, and a protocol
-defined in this module (registered with ``register_protocol``, no package file changed) runs
-through the motor checks, the check by hand included, and on the control tick (the fault
-suite's bench) through the motor faults: silent, error code, over-temperature.
+session.BringUp runs on python-can's virtual bus against each protocol's emulated firmware in a
+thread (each protocol's ``make_emulator``): wheels and hips of two protocols on one bus are found
+and checked, a DaMiao or CyberGear motor in the wrong control mode is named with the fix and never
+enabled, a motor's fault is told in its protocol's words, and a protocol defined in this module
+(registered with ``register_protocol``, no package file changed) is named by ``can.protocol`` in a
+params file as any other (the choices are read from the table when a value is checked) and runs
+through the motor checks, the check by hand included, and on the control tick (the fault suite's
+bench) through the motor faults: silent, error code, over-temperature.
 """
-import dataclasses
 import math
 import os
+import pathlib
 import struct
+import subprocess
+import sys
 import threading
 import time
 
 import can
 import pytest
 
+from wheelleg_balance.bringup import robot_config
 from wheelleg_balance.bringup.report import FAIL, PASS, Report
 from wheelleg_balance.bringup.session import BringUp, Operator
 from wheelleg_balance.core.config import BalanceConfig
-from wheelleg_balance.core.protocols import make_protocol, PROTOCOLS, register_protocol
+from wheelleg_balance.core.protocols import make_protocol, protocol_for, PROTOCOLS, \
+    register_protocol
 from wheelleg_balance.core.protocols.base import Frame, MotorFeedback, MotorProtocol
 from wheelleg_balance.core.protocols.emulation import EmulatedMotor, EmulatedMotors, \
     torque_only
-from wheelleg_balance.core.schema import with_changes
+from wheelleg_balance.core.schema import from_flat, to_flat, with_changes
 from wheelleg_balance.nodes.can_io import CanIo
-from wheelleg_balance.sim.motor_emulator import DjiC620Emulator, MitMotorBank
 
 WHEELS = (1, 2)
 HIPS = (3, 4, 5, 6)
@@ -71,12 +74,9 @@ class NoHands(Operator):
 
 def bank(name, ids, cfg_section):
     """Return emulated motors of protocol ``name`` with the configuration's codec."""
-    if name == 'mit':
-        return MitMotorBank(ids, reply_temperature=True)
-    if name == 'dji_c620':
-        return DjiC620Emulator(ids)
-    from wheelleg_balance.core.protocols import protocol_for
-    return EmulatedMotors(protocol_for(name, cfg_section), ids)
+    # CubeMars' 8-byte MIT replies: temperature and error code.
+    options = {'reply_temperature': True} if name == 'mit' else {}
+    return EmulatedMotors(protocol_for(name, cfg_section), ids, **options)
 
 
 def config(channel, wheels, hips=None):
@@ -111,11 +111,11 @@ def run_find(cfg, banks, operator=None, by_hand=False):
     return session, probes
 
 
-def emulators(banks):
-    out = {}
-    for b in banks:
-        out.update(getattr(b, 'emulators', {}))
-    return out
+def left_on(banks):
+    """Return the IDs of motors left driven: in torque mode (the C620 from power-up: a current)."""
+    return [e.motor_id for b in banks for e in b.emulators.values()
+            if e.enabled and not (e.powered_enabled and e.command is not None
+                                  and e.command.torque == 0.0)]
 
 
 @pytest.mark.parametrize('wheels', ['lk', 'cybergear', 'damiao', 'dji_c620', 'mit'])
@@ -129,7 +129,7 @@ def test_wheels_of_each_protocol_are_found_and_checked(wheels):
             checks[item].text
     assert [s.key for s in session.found] == ['left_wheel', 'right_wheel']
     # Enabled, answered, disabled again: no motor left in its torque mode.
-    assert not any(e.enabled for e in emulators(banks).values())
+    assert left_on(banks) == []
 
 
 @pytest.mark.parametrize('wheels, hips', [('lk', 'damiao'), ('dji_c620', 'cybergear'),
@@ -143,7 +143,7 @@ def test_wheels_and_hips_of_two_protocols_on_one_bus(wheels, hips):
         [checks[i].text for i in LABELS]
     assert all('(%s)' % hips in checks[item].text for item in LABELS[2:])
     assert len(session.found) == 6
-    assert not any(e.enabled for e in emulators(banks).values())
+    assert left_on(banks) == []
 
 
 @pytest.mark.parametrize('hips, wrong, words', [
@@ -206,6 +206,7 @@ class _HereProtocol(MotorProtocol):
     """
 
     name = 'bringup_test_here'
+    torque_limit = 12.0   # [N m]: within the simulated wheels' actuators (sim/layout.py)
 
     def enable_frames(self, motor_ids):
         return [Frame(0x600 + i, b'\x01') for i in motor_ids]
@@ -215,7 +216,7 @@ class _HereProtocol(MotorProtocol):
                                                      for i in motor_ids]
 
     def torque_frames(self, torques):
-        return [Frame(0x600 + i, struct.pack('<h', round(1e3 * max(-30.0, min(30.0, t)))
+        return [Frame(0x600 + i, struct.pack('<h', round(1e3 * max(-12.0, min(12.0, t)))
                                              if math.isfinite(t) else 0))
                 for i, t in torques.items()]
 
@@ -247,7 +248,7 @@ class _HereProtocol(MotorProtocol):
             'in test mode %d: write 0 to its mode' % mode)
 
     def make_emulator(self, motor_id, **options):
-        return _HereMotor(motor_id, 30.0, **options)
+        return _HereMotor(motor_id, self.torque_limit, **options)
 
 
 class _HereMotor(EmulatedMotor):
@@ -284,15 +285,35 @@ class TurnWheels(Operator):
             self.motors.joints[s.motor_id] = (q + 1.0, 0.0)
 
 
-@pytest.fixture
-def here_config(monkeypatch):
-    """Return a configuration whose wheels speak _HereProtocol (registered for the test)."""
-    monkeypatch.setitem(PROTOCOLS, _HereProtocol.name, None)   # removed again afterwards
+def test_the_configuration_names_a_protocol_once_it_is_registered(monkeypatch):
+    flat = {'can.protocol': _HereProtocol.name}
+    with pytest.raises(ValueError, match="unknown can.protocol 'bringup_test_here'"):
+        from_flat(BalanceConfig, flat)
+    monkeypatch.setitem(PROTOCOLS, _HereProtocol.name, None)
     register_protocol(_HereProtocol)
-    cfg = config('bringup_here_%d' % os.getpid(), 'mit')
-    # The configuration's choices were fixed at import: the test's protocol goes in directly.
-    return dataclasses.replace(cfg, can=dataclasses.replace(cfg.can,
-                                                            protocol=_HereProtocol.name))
+    assert from_flat(BalanceConfig, flat).can.protocol == _HereProtocol.name
+    # Torque commands only (no command_frame): the hips cannot speak it.
+    with pytest.raises(ValueError, match="unknown legs.can.protocol 'bringup_test_here'"):
+        from_flat(BalanceConfig, {'legs.can.protocol': _HereProtocol.name})
+
+
+@pytest.fixture
+def here_protocol(monkeypatch):
+    """Register _HereProtocol for the test (removed from the table again afterwards)."""
+    monkeypatch.setitem(PROTOCOLS, _HereProtocol.name, None)
+    register_protocol(_HereProtocol)
+    return _HereProtocol.name
+
+
+@pytest.fixture
+def here_config(here_protocol, tmp_path):
+    """Return a configuration whose wheels speak _HereProtocol, read from a params file."""
+    flat = to_flat(config('bringup_here_%d' % os.getpid(), 'mit'))
+    flat['can.protocol'] = here_protocol   # named as any package protocol is
+    path = robot_config.write_params(tmp_path / 'here.yaml', robot_config.build(
+        dict(flat)), ['the wheels on a protocol of test_bringup_protocols.py'])
+    assert 'protocol: %s' % here_protocol in path.read_text()
+    return robot_config.build(robot_config.read_params(path))
 
 
 def test_a_protocol_defined_here_runs_through_the_motor_checks(here_config):
@@ -328,12 +349,8 @@ def test_a_protocol_defined_here_names_its_mode_and_its_fault(here_config):
 
 def here_bench(cfg):
     """Return an armed fault-suite bench on ``cfg`` (wheels: _HereProtocol's emulated motors)."""
-    from wheelleg_balance.core.balance_loop import BalanceLoop
     from wheelleg_balance.validation.faults import bench as bench_module
-    bench = bench_module.LoopBench()
-    bench.config, bench.loop = cfg, BalanceLoop(cfg)   # past from_flat: the choices of import
-    bench.reader = bench_module.joint_state_reader(cfg)
-    bench.motors = bench_module.wheel_motors(bench.loop)
+    bench = bench_module.LoopBench(**to_flat(cfg))   # checked as balance_node checks it
     req = bench.arm_from_rest()
     assert req.success, req.message
     return bench
@@ -394,3 +411,25 @@ def test_a_hip_on_the_wheels_bus_is_found_there_in_its_own_protocol():
     fix = 'connect it to %s, or set legs.can.channel: %s' % (legs_bus, wheels_bus)
     assert rear.fix[0] == fix
     assert [checks[item].level for item in LABELS[:5]] == [PASS] * 5
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_a_protocol_defined_here_passes_bringup_sim(tmp_path):
+    # sim_node is another process: bring-up names the protocol (module:class, this module on
+    # the children's path) and has sim_node load it too.
+    from wheelleg_balance.validation import child_env
+    env = child_env()
+    env['PYTHONPATH'] = os.pathsep.join((env['PYTHONPATH'], str(pathlib.Path(__file__).parent)))
+    out = tmp_path / 'robot.yaml'
+    proc = subprocess.run(
+        [sys.executable, '-m', 'wheelleg_balance.bringup.cli', '--sim', '--output', str(out),
+         '--protocol', 'test_bringup_protocols:_HereProtocol',
+         '--sim-param', 'can.protocol=%s' % _HereProtocol.name],
+        capture_output=True, text=True, timeout=240, cwd=tmp_path, env=env)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert '[FAIL]' not in proc.stdout
+    assert proc.stdout.count('(%s): position' % _HereProtocol.name) == 2   # both wheels
+    assert '[PASS] right wheel (ID 2): turned forward' in proc.stdout
+    text = out.read_text()
+    assert 'protocol: %s' % _HereProtocol.name in text

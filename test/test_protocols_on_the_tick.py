@@ -1,81 +1,35 @@
 """
 The control tick on every wheel-motor protocol (issue 31): arm, torque, disarm, the motor faults.
 
-The fault suite's bench (validation/faults/bench.LoopBench: BalanceLoop on a virtual clock)
-with the configured protocol's own emulated motors (bench.wheel_motors: core/protocols'
-``make_emulator`` for LK, CyberGear and DaMiao; sim/motor_emulator's MIT motors, with
-8-byte replies (temperature and error code) as CubeMars firmware sends them; its C620 ESCs
-behind ``C620Motors``): what the tick sends is what the emulated firmware acts on, its replies
-are what the tick reads. The motor faults on each protocol: a silent motor, error bits (every
-protocol whose reply carries them, and LK by its state-1 read: not the C620's feedback), an
-over-temperature, a reboot; and the second-commander check. Wheel speeds come from joint
-states; max_wheel_torque 4 N m is within each model's limit.
+The fault suite's bench (validation/faults/bench.LoopBench: BalanceLoop on a virtual clock) with
+the configured protocol's own emulated motors (bench.wheel_motors: core/protocols'
+``make_emulator`` for each; MIT's with 8-byte replies, temperature and error code, as CubeMars
+firmware sends them): what the tick sends is what the emulated firmware acts on, its replies are
+what the tick reads. The motor faults on each protocol: a silent motor, error bits (every protocol
+whose reply carries them, and LK by its state-1 read: not the C620's feedback), an
+over-temperature, a reboot; and the second-commander check. Wheel speeds come from joint states;
+max_wheel_torque 4 N m is within each model's limit.
 """
 import math
 
 import pytest
 from wheelleg_balance.core.protocols.emulation import EmulatedMotors
+from wheelleg_balance.core.protocols.mit import MitMotorEmulator
 from wheelleg_balance.core.safety import Mode
-from wheelleg_balance.sim.motor_emulator import DjiC620Emulator, MitMotorEmulator
 import wheelleg_balance.validation.faults.bench as bench_module
 from wheelleg_balance.validation.faults.bench import LoopBench, make_imu
 
 PROTOCOLS = ('mit', 'dji_c620', 'lk', 'cybergear', 'damiao')
 LIMIT = 4.0
-#: The bench's own choice of motors (the fixture below puts C620Motors in front of it).
+#: The bench's own choice of motors (the fixture below sets the MIT motors' reply length).
 BENCH_MOTORS = bench_module.wheel_motors
 
 
-class C620Motors:
-    """
-    sim/motor_emulator's C620 ESCs with the bench's interface (EmulatedMotors'): joints, torque.
-
-    The ESC applies the commanded current's torque at its motor; directions map it to the
-    joint. ``reboot(i)``: the ESC powers up with no current until the next command, its
-    rotor encoder absolute (the reading stays).
-    """
-
-    def __init__(self, ids, directions):
-        self.esc = DjiC620Emulator(ids)
-        self.ids = self.esc.ids
-        self.directions = dict(directions)
-        self.joints = dict.fromkeys(self.ids, (0.0, 0.0))
-        self.silent = self.esc.silent
-        self.emulators = {}
-
-    def handle(self, frame, now):
-        for i, (q, q_dot) in self.joints.items():
-            self.esc.state[i] = (self.directions[i] * q, self.directions[i] * q_dot)
-        return self.esc.handle(frame, now)
-
-    def torque(self, motor_id, now):
-        return self.directions[motor_id] * self.esc.torque(motor_id)
-
-    def motor(self, motor_id):
-        return _Esc(self.esc, motor_id)
-
-
-class _Esc:
-    """One ESC of C620Motors: its fault hooks."""
-
-    def __init__(self, esc, esc_id):
-        self.esc, self.esc_id = esc, esc_id
-
-    def set_temperature(self, temperature):
-        self.esc.temperature = int(temperature)   # the emulator's ESCs share one
-
-    def reboot(self, q):
-        self.esc.currents[self.esc_id] = 0
-
-
 def wheel_motors(loop):
-    """Return the bench's motors: the protocol's own, the C620's behind C620Motors."""
-    directions = {m.motor_id: m.direction for m in loop.motors.motors}
-    if loop.protocol.name == 'dji_c620':
-        return C620Motors(loop.motors.ids, directions)
+    """Return the bench's motors (each protocol's own), MIT's with 8-byte replies."""
     motors = BENCH_MOTORS(loop)
     for e in motors.emulators.values():
-        if isinstance(e, MitMotorEmulator):   # whether from MitMotorBank or make_emulator
+        if isinstance(e, MitMotorEmulator):
             e.reply_temperature = True   # CubeMars' 8-byte replies: temperature, error code
     return motors
 
@@ -97,7 +51,7 @@ def make_bench(monkeypatch):
 
 
 def test_the_bench_builds_each_protocols_own_motors():
-    for protocol in ('lk', 'cybergear', 'damiao'):
+    for protocol in PROTOCOLS:
         bench = LoopBench(**{'can.protocol': protocol, 'max_wheel_torque': LIMIT,
                              'wheel_state_source': 'joint_states'})
         assert isinstance(bench.motors, EmulatedMotors)
@@ -140,7 +94,10 @@ def test_the_tick_drives_the_motors_and_disarms_them(make_bench, protocol):
     bench.tick()
     assert bench.mode == int(Mode.DISARMED)
     assert applied(bench) == [0.0, 0.0]   # out of torque mode: nothing at all
-    assert not any(e.enabled for e in bench.motors.emulators.values())
+    if bench.loop.protocol.enable_frames(bench.loop.motors.ids):   # the C620 has no mode
+        assert not any(e.enabled for e in bench.motors.emulators.values())
+    else:
+        assert all(e.command.torque == 0.0 for e in bench.motors.emulators.values())
 
 
 @pytest.mark.parametrize('protocol', PROTOCOLS)

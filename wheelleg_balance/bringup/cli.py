@@ -3,12 +3,15 @@ The ``bringup`` command (``ros2 run wheelleg_balance bringup``): see docs/robot_
 
     bringup --config my_robot.yaml --output my_robot_checked.yaml    # the robot on its stand
     bringup --sim [--sim-param fault.miswired_motor_id=1]            # against sim_node
+    bringup --sim --sim-config config/sim_lk_damiao.yaml             # another simulated robot
 
 Reads the robot's balance_node params file, runs the checks of session.py on its CAN buses
 with the builder at the terminal, reads the IMU on ``imu`` (remappable: ``--ros-args -r
 imu:=/my_imu/data``), and writes the filled config to ``--output`` (also when a check failed:
 the corrections are in it, and the header lists what failed). ``--sim`` starts sim_node on a
-udp_multicast bus of its own and lets its hand do the builder's part (sim.py). Exit status: 0
+udp_multicast bus of its own and lets its hand do the builder's part (sim.py); ``--sim-config``
+lays a sim_node params file over its defaults (the motors of another robot), ``--sim-param``
+single parameters over both. Exit status: 0
 every check passed, 1 a check failed, 2 bring-up refused to run (a balance_node drives the bus)
 or could not start.
 """
@@ -32,6 +35,7 @@ from .iplink import check_link, ip_link_json
 from .motor_checks import channels
 from .report import Check, FAIL, Report
 from .session import BringUp, ConsoleOperator, Refused
+from ..core.protocols import import_protocol
 from ..core.schema import from_flat, nest
 from ..processes import end_process
 from ..sim.config import SimConfig
@@ -153,13 +157,14 @@ def _parse_overrides(items: List[str]) -> dict:
     return out
 
 
-def _start_sim(params: dict, folder: pathlib.Path) -> subprocess.Popen:
+def _start_sim(params: dict, folder: pathlib.Path, protocols: List[str]) -> subprocess.Popen:
     path = folder / 'sim.yaml'
     path.write_text(yaml.safe_dump({'sim_node': {'ros__parameters': nest(params)}},
                                    default_flow_style=None))
     log = open(folder / 'sim_node.log', 'w')
-    return subprocess.Popen([sys.executable, '-m', 'wheelleg_balance.nodes.sim_node',
-                             '--ros-args', '--params-file', str(path)], stdout=log,
+    loads = [arg for spec in protocols for arg in ('--protocol', spec)]
+    return subprocess.Popen([sys.executable, '-m', 'wheelleg_balance.nodes.sim_node'] + loads
+                            + ['--ros-args', '--params-file', str(path)], stdout=log,
                             stderr=subprocess.STDOUT,
                             env=child_env(dict(os.environ, PYTHONUNBUFFERED='1')))
 
@@ -184,6 +189,12 @@ def main(argv: Optional[List[str]] = None) -> int:
                         "own, whose hand does the builder's part")
     parser.add_argument('--sim-param', action='append', default=[], metavar='NAME=VALUE',
                         help='a sim_node parameter, e.g. fault.miswired_motor_id=1')
+    parser.add_argument('--sim-config', type=pathlib.Path, default=None,
+                        help='--sim: a sim_node params file laid over its defaults, e.g. '
+                        "the package's config/sim_lk_damiao.yaml")
+    parser.add_argument('--protocol', action='append', default=[], metavar='MODULE:CLASS',
+                        help='register a protocol defined outside the package (its module '
+                        'on the path; --sim: sim_node loads it too)')
     parser.add_argument('--can-group', default=None, help='--sim: the udp_multicast group')
     parser.add_argument('--udp-port', type=int, default=None, help='--sim: the UDP port')
     args = parser.parse_args(remove_ros_args(['bringup'] + argv)[1:])
@@ -193,15 +204,22 @@ def main(argv: Optional[List[str]] = None) -> int:
     ros = None
     ios: List = []
     try:
+        for spec in args.protocol:
+            import_protocol(spec)
         if args.sim:
             pid = os.getpid()
             group = args.can_group or '239.74.%d.%d' % ((pid >> 8) % 256, pid % 256 or 1)
             port = args.udp_port or 40000 + pid % 20000
-            params = simmod.sim_params(group, port, _parse_overrides(args.sim_param))
+            robot = robot_config.read_params(args.sim_config, 'sim_node') \
+                if args.sim_config else {}
+            overrides = _parse_overrides(args.sim_param)
+            params = simmod.sim_params(group, port, dict(robot, **overrides))
             sim_cfg = from_flat(SimConfig, params)
             cfg = simmod.balance_config(sim_cfg)
-            faults = ', '.join('%s=%s' % kv for kv in _parse_overrides(args.sim_param).items())
-            base = 'sim_node on its stand (%s)' % (faults or 'no sim_node parameter overrides')
+            faults = ', '.join('%s=%s' % kv for kv in overrides.items())
+            base = 'sim_node on its stand (%s%s)' % (
+                '%s, ' % args.sim_config if args.sim_config else '',
+                faults or 'no sim_node parameter overrides')
         else:
             path = args.config or default_config()
             cfg = robot_config.build(robot_config.read_params(path))
@@ -214,7 +232,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         ros = RosSide(['bringup', '--ros-args'] + _ros_args(argv))
         if args.sim:
             tmp = tempfile.TemporaryDirectory(prefix='bringup_sim_')
-            sim_proc = _start_sim(params, pathlib.Path(tmp.name))
+            sim_proc = _start_sim(params, pathlib.Path(tmp.name), args.protocol)
             end = time.monotonic() + SIM_START_TIMEOUT
             while ros.imu_count == 0 and time.monotonic() < end and sim_proc.poll() is None:
                 time.sleep(0.05)

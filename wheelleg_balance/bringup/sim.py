@@ -16,8 +16,9 @@ from typing import Callable, Dict, List, Mapping, Sequence
 from .motor_checks import MotorSlot
 from .session import Operator
 from ..core.config import BalanceConfig
-from ..core.schema import from_flat, with_changes
-from ..sim.config import SimConfig
+from ..core.protocols import protocol_class
+from ..core.schema import check, from_flat, spec_by_name, to_flat, with_changes
+from ..sim.config import motor_protocol, SimConfig
 
 #: The hand's moves [rad] and torque limits [N m] per step (joint conventions, sim/hand.py).
 HAND = {'wheel_forward': (1.0, 0.5), 'leg_fold': (-3.0, 4.0), 'leg_stretch': (0.3, 4.0)}
@@ -32,24 +33,41 @@ def sim_params(can_group: str, udp_port: int, overrides: Mapping[str, object] = 
             'can.udp_port': udp_port, 'initial_pose': 'stand',
             'ground_truth_rate': 0.0}
     flat.update(dict(overrides))
-    from_flat(SimConfig, flat)   # ValueError for an unknown name or a bad value
+    problems = check(from_flat(SimConfig, flat))   # from_flat: ValueError for a bad value
+    if problems:
+        raise ValueError('; '.join(problems))
     return flat
 
 
 def balance_config(sim: SimConfig) -> BalanceConfig:
-    """Return the balance_node configuration a builder would write for sim_node's robot."""
+    """
+    Return the balance_node configuration a builder would write for sim_node's robot.
+
+    Each motor set's protocol with its figures: the section the protocol names (``can.lk``,
+    ``legs.damiao``, ...), as sim_node has it, balance_node's parameters of it only (sim_node
+    adds firmware options such as ``can.mit.wrap``); max_wheel_torque at most what the wheel
+    motors give.
+    """
     c, legs = sim.can, sim.legs
-    return with_changes(BalanceConfig(), {
+    known = spec_by_name(BalanceConfig)
+    prefixes = tuple('%s.%s.' % (owner, protocol_class(name).config_section)
+                     for owner, name in (('can', c.protocol), ('legs', legs.protocol))
+                     if protocol_class(name).config_section)
+    figures = {k: v for k, v in to_flat(sim).items() if k.startswith(prefixes) and k in known}
+    wheel_limit = min(BalanceConfig().safety.max_wheel_torque, motor_protocol(c).torque_limit)
+    return with_changes(BalanceConfig(), dict(figures, **{
+        'max_wheel_torque': wheel_limit,
         'can.interface': c.interface, 'can.channel': c.channel, 'can.udp_port': c.udp_port,
         'can.protocol': c.protocol,
         'can.left_motor_id': c.left_motor_id, 'can.right_motor_id': c.right_motor_id,
         'can.left_direction': c.left_direction, 'can.right_direction': c.right_direction,
         'legs.driven': True, 'legs.motor_ids': list(legs.motor_ids),
         'legs.directions': list(legs.directions), 'legs.offsets': list(legs.offsets),
-        'legs.can.channel': legs.can_channel, 'legs.homing': 'set_zero',
+        'legs.can.channel': legs.can_channel, 'legs.can.protocol': legs.protocol,
+        'legs.homing': 'set_zero',
         'imu_timeout': 0.5, 'joint_state_timeout': 0.5, 'motor_timeout': 0.5,
         'watchdog_timeout': 0.5,
-    })
+    }))
 
 
 def joint_names(sim: SimConfig) -> Dict[str, str]:

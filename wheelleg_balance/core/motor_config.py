@@ -10,11 +10,13 @@ from dataclasses import dataclass
 from typing import List
 
 from .protocols import CybergearConfig, DamiaoConfig, impedance_protocols, LkConfig, PROTOCOLS
-from .schema import param, section
+from .schema import LiveChoices, param, section
 
 RO = True
-#: Values of ``can.protocol`` and ``legs.can.protocol`` (those with impedance commands).
-PROTOCOL_NAMES, HIP_PROTOCOL_NAMES = tuple(PROTOCOLS), impedance_protocols()
+#: Values of ``can.protocol`` and ``legs.can.protocol`` (those with impedance commands), read
+#: from the protocol table at each check: a protocol registered at run time can be named.
+PROTOCOL_NAMES = LiveChoices(lambda: tuple(PROTOCOLS))
+HIP_PROTOCOL_NAMES = LiveChoices(impedance_protocols)
 
 
 def sign_param(default: int, description: str):

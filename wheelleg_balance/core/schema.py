@@ -14,13 +14,38 @@ an empty prefix puts a section's fields at the top level (``fall_angle``); ``par
 overrides the derived name for a field whose ROS name does not follow the rule.
 No rclpy here.
 """
+from collections.abc import Sequence as SequenceABC
 from dataclasses import dataclass, field, fields, is_dataclass, replace
 import functools
 import math
-from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 
 #: Types a parameter value may have (rclpy's parameter types).
 SCALAR_TYPES = (bool, int, float, str)
+
+
+class LiveChoices(SequenceABC):
+    """
+    The allowed values of a str parameter, read from ``source()`` whenever they are asked for.
+
+    For choices from a table that grows at run time (core/protocols' ``register_protocol``):
+    a check made after the registration admits the new name.
+    """
+
+    def __init__(self, source: Callable[[], Sequence[str]]):
+        self._source = source
+
+    def __getitem__(self, index):
+        return tuple(self._source())[index]
+
+    def __len__(self) -> int:
+        return len(tuple(self._source()))
+
+    def __contains__(self, value) -> bool:
+        return value in tuple(self._source())
+
+    def __repr__(self) -> str:
+        return 'LiveChoices(%r)' % (tuple(self._source()),)
 
 
 @dataclass(frozen=True)
@@ -32,7 +57,8 @@ class ParamSpec:
     field; default; kind: bool, int, float, str or list; item: the element type of a list;
     description (with the unit in brackets); lo/hi: inclusive range of a number (or of every
     element of a list); read_only: cannot change while the node runs; step: an integer range's
-    step (2 with lo -1, hi 1 admits exactly -1 and +1); choices: the allowed values of a str;
+    step (2 with lo -1, hi 1 admits exactly -1 and +1); choices: the allowed values of a str
+    (a LiveChoices: read at each check);
     length: the required length of a list (None: any). A default of None means unset: the
     value stays None unless given, and the node derives what it means.
     """
@@ -47,7 +73,7 @@ class ParamSpec:
     hi: Optional[float] = None
     read_only: bool = False
     step: int = 0
-    choices: Tuple[str, ...] = ()
+    choices: Sequence[str] = ()
     length: Optional[int] = None
 
     def check(self, value: Any) -> Optional[str]:
@@ -100,8 +126,9 @@ def param(default: Any, description: str, lo: Optional[float] = None,
     the derived ROS parameter name.
     """
     md = {'param': {'description': description, 'lo': lo, 'hi': hi, 'read_only': read_only,
-                    'step': step, 'choices': tuple(choices), 'length': length, 'item': item,
-                    'name': name, 'kind': kind}}
+                    'step': step, 'length': length, 'item': item,
+                    'name': name, 'kind': kind,
+                    'choices': choices if isinstance(choices, LiveChoices) else tuple(choices)}}
     if isinstance(default, (list, tuple)):
         value = tuple(default)
         return field(default_factory=lambda: list(value), metadata=md)

@@ -56,6 +56,7 @@ bursts: when the wait or the CPU makes it late it simply runs slower than real t
 (``real_time_factor``). The closed loop is then the same on a loaded machine as on an idle one
 (docs/simulation.md).
 """
+import argparse
 from collections import Counter
 import sys
 import threading
@@ -131,6 +132,8 @@ class SimNode(Node):
             reply_temperature=fw.reply_temperature, power_up=legs.power_up)
         for e in self.motors.emulators.values():
             e.miswired = e.motor_id == cfg.fault.miswired_motor_id
+            if e.motor_id == cfg.fault.wrong_mode_motor_id:   # SimConfig checked it has one
+                e.set_control_mode(cfg.fault.wrong_mode)
         h = cfg.hand
         self.motors.hand = Hand(len(JOINTS), h.kp, h.kd, h.max_torque)
         self._hand_joints = {name: k for k, name in enumerate(
@@ -367,6 +370,21 @@ class SimNode(Node):
                     self.can_errors += 1
 
 
+def load_protocols(argv) -> None:
+    """
+    Register the protocols named by ``--protocol module:Class`` (before the parameters).
+
+    A protocol defined outside the package (a test's, a builder's) whose module is on the
+    path; its name is then a value of ``can.protocol`` / ``legs.can.protocol``.
+    """
+    from rclpy.utilities import remove_ros_args
+    from ..core.protocols import import_protocol
+    parser = argparse.ArgumentParser(prog='sim_node')
+    parser.add_argument('--protocol', action='append', default=[], metavar='MODULE:CLASS')
+    for spec in parser.parse_args(remove_ros_args(['sim_node'] + list(argv))[1:]).protocol:
+        import_protocol(spec)
+
+
 def main(args=None) -> None:
     """Run sim_node until Ctrl-C."""
     # The CAN thread answers ~1000 frames/s: hand the GIL over sooner than the default 5 ms so
@@ -378,6 +396,7 @@ def main(args=None) -> None:
     rclpy.init(args=args)
     node = None
     try:
+        load_protocols(sys.argv[1:] if args is None else args)
         node = SimNode()
         node.start()
         rclpy.spin(node)

@@ -131,6 +131,13 @@ class FaultConfig:
     miswired_motor_id: int = param(0, 'the motor(s) with this CAN ID turn the other way than '
                                    'configured (bring-up check); 0: none', 0, 2047,
                                    read_only=RO)
+    wrong_mode_motor_id: int = param(0, 'the motor(s) with this CAN ID start in control mode '
+                                     'wrong_mode instead of the one the node commands (a '
+                                     'DaMiao or CyberGear hip: bring-up check); 0: none', 0,
+                                     2047, read_only=RO)
+    wrong_mode: int = param(2, "that motor's mode register value (DaMiao CTRL_MODE, "
+                            'CyberGear run_mode; 2: position-velocity, speed)', 0, 255,
+                            read_only=RO)
 
 
 @dataclass(frozen=True)
@@ -265,6 +272,7 @@ class SimConfig:
         miswired = self.fault.miswired_motor_id
         if miswired and miswired not in ids:
             out.append('fault.miswired_motor_id %d is none of the motors %s' % (miswired, ids))
+        out += self._wrong_mode_problems()
         if len(self.pushes) % 4:
             out.append('pushes needs groups of 4 [start, duration, force_x, force_y]')
         for name, owner, limit in (('can', self.can, WHEEL_TORQUE_LIMIT),
@@ -280,6 +288,26 @@ class SimConfig:
                 out.append("%s.%s.%s: the %s motors' torque limit %.1f N m above the model's "
                            'actuators (%.0f N m)' % (name, codec.config_section, field,
                                                      owner.protocol, codec.torque_limit, limit))
+        return out
+
+    def _wrong_mode_problems(self) -> List[str]:
+        """fault.wrong_mode_motor_id: one of the motors, whose emulator has that mode."""
+        motor_id = self.fault.wrong_mode_motor_id
+        if not motor_id:
+            return []
+        ids = self.motor_ids
+        owners = [owner for owner, on in ((self.can, ids[:2]), (self.legs, ids[2:]))
+                  if motor_id in on]
+        if not owners:
+            return ['fault.wrong_mode_motor_id %d is none of the motors %s' % (motor_id, ids)]
+        out = []
+        for owner in owners:
+            try:
+                motor_protocol(owner).make_emulator(motor_id).set_control_mode(
+                    self.fault.wrong_mode)
+            except ValueError as e:   # its codec's figures are judged above
+                out.append('fault.wrong_mode_motor_id %d (%s): %s'
+                           % (motor_id, owner.protocol, e))
         return out
 
 

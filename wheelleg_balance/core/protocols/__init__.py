@@ -6,8 +6,10 @@ codec class; everything about a protocol is on that class and in its module (fra
 replies in, special frames, its configuration section ``config``, frames per tick, reply
 health, the position's wrap or saturation, its emulator). ``make_protocol(name, **params)``
 builds a codec from keyword arguments, ``protocol_for(name, owner)`` from its configuration
-section of ``can`` or ``legs``; ``register_protocol`` adds one (a test's, a builder's) at run time.
+section of ``can`` or ``legs``; ``register_protocol`` adds one (a test's, a builder's) at run
+time, ``import_protocol('module:Class')`` in another process.
 """
+import importlib
 from typing import Any, Iterable, List, Optional, Tuple, Type
 
 from .base import Frame, MotorFeedback, MotorProtocol
@@ -68,6 +70,23 @@ def impedance_protocols():
                  if callable(getattr(cls, 'command_frame', None)))
 
 
+def import_protocol(spec: str) -> Type[MotorProtocol]:
+    """
+    Import and register the protocol ``spec`` names: 'package.module:ClassName'.
+
+    How another process (sim_node, bring-up's) gets a protocol defined outside the package: its
+    module must be importable there (on its sys.path). ValueError for a bad spec.
+    """
+    module, sep, name = spec.partition(':')
+    if not (sep and module and name):
+        raise ValueError('a protocol is named module:Class, got %r' % spec)
+    try:
+        cls = getattr(importlib.import_module(module), name)
+    except (ImportError, AttributeError) as e:
+        raise ValueError('cannot load protocol %s: %s' % (spec, e)) from None
+    return register_protocol(cls)
+
+
 def register_protocol(cls: Type[MotorProtocol]) -> Type[MotorProtocol]:
     """Add a MotorProtocol subclass to the table under its ``name`` (usable as a decorator)."""
     if not (isinstance(cls, type) and issubclass(cls, MotorProtocol) and cls.name):
@@ -77,7 +96,6 @@ def register_protocol(cls: Type[MotorProtocol]) -> Type[MotorProtocol]:
 
 
 __all__ = ['check_motors', 'CybergearConfig', 'CybergearProtocol', 'DamiaoConfig',
-           'DamiaoProtocol', 'DjiC620Protocol', 'Frame', 'impedance_protocols', 'LkConfig',
-           'LkProtocol', 'make_protocol', 'MitCommand', 'MitProtocol', 'MotorFeedback',
-           'MotorProtocol', 'protocol_class', 'protocol_for', 'PROTOCOLS',
-           'register_protocol']
+           'DamiaoProtocol', 'DjiC620Protocol', 'Frame', 'impedance_protocols', 'import_protocol',
+           'LkConfig', 'LkProtocol', 'make_protocol', 'MitCommand', 'MitProtocol', 'MotorFeedback',
+           'MotorProtocol', 'protocol_class', 'protocol_for', 'PROTOCOLS', 'register_protocol']

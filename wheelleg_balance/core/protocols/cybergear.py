@@ -379,6 +379,13 @@ class CybergearMotorEmulator(EmulatedMotor):
                                  self.motor_torque, self.temperature, self.error,
                                  MODE_RUN if self.enabled else MODE_RESET)
 
+    def set_control_mode(self, mode: int) -> None:
+        """Set run_mode (index 0x7005) to ``mode`` (RUN_MODES; ValueError otherwise)."""
+        if mode not in RUN_MODES:
+            raise ValueError('CyberGear run_mode is one of %s, not %r' % (sorted(RUN_MODES),
+                                                                          mode))
+        self.run_mode = int(mode)
+
     def power_up_position(self, position: float) -> float:
         """Return the angle after power-up: from the factory zero, within one rotor turn."""
         return rotor_turn_position(position + self.zero, self.gear_ratio)

@@ -323,6 +323,13 @@ class DamiaoMotorEmulator(EmulatedMotor):
             return None
         return p.encode_register_reply(self.motor_id, data[2], register, values[register])
 
+    def set_control_mode(self, mode: int) -> None:
+        """Set CTRL_MODE (register 10) to ``mode`` (CONTROL_MODES; ValueError otherwise)."""
+        if mode not in CONTROL_MODES:
+            raise ValueError('DaMiao CTRL_MODE is one of %s, not %r' % (sorted(CONTROL_MODES),
+                                                                        mode))
+        self.control_mode = int(mode)
+
     def power_up_position(self, position: float) -> float:
         """Return the reading after power-up: the output angle within +-pi (zero kept)."""
         return rotor_turn_position(position, 1.0)

@@ -181,6 +181,15 @@ class EmulatedMotor:
         """Set the error code or bits its replies report (0: none); output off until 0."""
         self.error = int(code)
 
+    def set_control_mode(self, mode: int) -> None:
+        """
+        Put the motor in control mode ``mode``, its mode register's value (a bring-up fault).
+
+        What another tool may leave a motor in; ValueError for a motor with no such register
+        (the default) or a value it does not have.
+        """
+        raise ValueError('motor %d has no control mode register' % self.motor_id)
+
 
 def rotor_turn_position(position: float, gear_ratio: float,
                         window: Tuple[float, float] = (-math.pi, math.pi)) -> float:

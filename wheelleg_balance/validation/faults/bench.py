@@ -28,7 +28,6 @@ from ...core.protocols.mit import MitCommand, MitProtocol
 from ...core.schema import check, from_flat, with_changes
 from ...nodes.params import load, ParameterGuard
 from ...nodes.sensor_intake import imu_sample
-from ...sim.motor_emulator import MitMotorBank
 
 #: The default configuration's wheel codec (the MIT rig's scenarios: validation/faults/rig.py).
 MIT = MitProtocol()
@@ -73,17 +72,9 @@ def make_joints(w_left: float = 0.0, w_right: float = 0.0, legs=None) -> JointSt
                       effort=[0.0] * len(names))
 
 
-def emulated_motors(protocol: MotorProtocol, ids, directions):
-    """
-    Return emulated motors of ``protocol`` (its make_emulator) with these IDs and directions.
-
-    A protocol without an emulator of its own yet (MIT: the simulator's work of issue 31 gives
-    it one) gets sim/motor_emulator.py's MIT motors with the protocol's ranges.
-    """
-    try:
-        return EmulatedMotors(protocol, ids, directions)
-    except NotImplementedError:
-        return MitMotorBank(ids, directions, protocol)
+def emulated_motors(protocol: MotorProtocol, ids, directions) -> EmulatedMotors:
+    """Return emulated motors of ``protocol`` (its make_emulator) with these IDs and directions."""
+    return EmulatedMotors(protocol, ids, directions)
 
 
 def wheel_motors(loop: BalanceLoop):

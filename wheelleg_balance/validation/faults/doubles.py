@@ -58,17 +58,16 @@ class FakeMotors:
     """
     Two wheel motors on a bus: every frame they act on is logged, their firmware answers.
 
-    The motors are ``protocol``'s emulated firmware (``motors``: bench.emulated_motors; MIT by
-    default, sim/motor_emulator.py's; ``directions`` those of the default configuration, the
-    joints still): each acts on its frames and answers as its firmware does. ``log`` holds
-    (time [s], motor id, kind, torque [N m]) per frame a motor acted on, read off the motor's
-    state after it (``frame_kind``): kind 'torque' (a torque-only command in its torque mode),
-    'command' (any other impedance command), 'enter' (torque mode, no command yet), 'exit'
-    (out of its torque mode). Motors in ``silent`` do not answer (they still act on the
-    frames); ``answer=False`` makes a passive recorder (another device answers, e.g.
-    sim_node); ``motor(id)`` is one motor's emulator, for its fault flags (``reply_id``:
-    replies that carry another ID). ``wheel_torques()`` gives the torques the motors apply, as
-    forward-positive wheel torques.
+    The motors are ``protocol``'s emulated firmware (``motors``: bench.emulated_motors, the
+    protocol's make_emulator; MIT by default; ``directions`` those of the default configuration,
+    the joints still): each acts on its frames and answers as its firmware does. ``log`` holds
+    (time [s], motor id, kind, torque [N m]) per frame a motor acted on, read off the motor's state
+    after it (``frame_kind``): kind 'torque' (a torque-only command in its torque mode), 'command'
+    (any other impedance command), 'enter' (torque mode, no command yet), 'exit' (out of its torque
+    mode). Motors in ``silent`` do not answer (they still act on the frames); ``answer=False``
+    makes a passive recorder (another device answers, e.g. sim_node); ``motor(id)`` is one motor's
+    emulator, for its fault flags (``reply_id``: replies that carry another ID).
+    ``wheel_torques()`` gives the torques the motors apply, as forward-positive wheel torques.
     """
 
     def __init__(self, bus: can.BusABC, ids=MOTOR_IDS, answer: bool = True,
