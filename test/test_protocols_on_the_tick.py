@@ -252,11 +252,16 @@ class MixedBench(LoopBench):
         return self.sent
 
 
-@pytest.mark.parametrize('wheels, hips', [('lk', 'damiao'), ('lk', 'cybergear'),
-                                          ('cybergear', 'damiao')])
-def test_mixed_robots_arm_hold_their_legs_and_disarm(make_bench, wheels, hips):
+@pytest.mark.parametrize('wheels, hips, hip_ids', [
+    ('lk', 'damiao', None), ('lk', 'cybergear', None), ('cybergear', 'damiao', None),
+    # A DaMiao reply's byte 0 is its ID and status (0x11: motor 1 enabled), which MIT hips
+    # 17..20 read as their own ID: the wheels' replies must reach the wheels.
+    ('damiao', 'mit', [17, 18, 19, 20])])
+def test_mixed_robots_arm_hold_their_legs_and_disarm(make_bench, wheels, hips, hip_ids):
+    ids = {} if hip_ids is None else {'legs.motor_ids': hip_ids}
     bench = MixedBench(**{'can.protocol': wheels, 'legs.can.protocol': hips,
-                          'max_wheel_torque': LIMIT, 'wheel_state_source': 'joint_states'})
+                          'max_wheel_torque': LIMIT, 'wheel_state_source': 'joint_states',
+                          **ids})
     req = bench.arm_from_rest()
     assert req.success, req.message
     sent = []

@@ -21,7 +21,6 @@ from .kinematics import FiveBarLeg
 from .motors import MotorSet
 from .protocols import protocol_for
 from .protocols.base import Frame, MotorProtocol
-from .protocols.mit import MitProtocol
 from .safety import ENCODER_MISMATCH, SensorSnapshot
 from .sensors import ImuReader, JointSample, JointStateReader
 from .wheel_state import WheelState
@@ -128,10 +127,10 @@ class Sensing:
                              for m in self.motors.motors] if self.from_can else []
         self._wheel_state_of = {m.motor_id: w for m, w in zip(self.motors.motors,
                                                               self.wheel_states)}
-        #: The hips' IDs that are no wheel's, where the wheels speak MIT: a frame with one of
-        #: them in byte 0 is no wheel reply (take).
+        #: The hips' IDs that are no wheel's, where the wheels' replies name their motor in
+        #: byte 0 (MIT): a frame with one of them there is no wheel reply (take).
         self._hip_only = frozenset(self.hips.by_id).difference(self.motors.by_id) \
-            if self.hips is not None and isinstance(self.protocol, MitProtocol) else frozenset()
+            if self.hips is not None and self.protocol.reply_id_in_first_byte else frozenset()
         #: The hips' angles come from joint_states_in (legs of another driver).
         self.has_leg_joints = bool(joint_state_reader(cfg).legs)
         self._wheels: Optional[JointSample] = None   # newest sample with the wheels
@@ -191,7 +190,7 @@ class Sensing:
         for t, frame in frames:
             data = frame.data
             if hip_only and type(data) is bytes and data and data[0] in hip_only:
-                # Byte 0 names a hip only: no wheel reply (the wheels' MIT codec reads the
+                # Byte 0 names a hip only: no wheel reply (the wheels' codec reads the
                 # replying motor's ID there), so the wheels need not decode it.
                 if hips.on_frame(t, frame) is None:
                     self._note_foreign(t, frame)

@@ -101,6 +101,9 @@ class MotorProtocol(ABC):
     #: nor ends), or, with position_saturates, the span whose ends it sticks at.
     position_span = math.inf
     position_saturates = False
+    #: A reply's first byte is the replying motor's ID and nothing else (MIT): a frame whose
+    #: first byte names another motor set's motor is then no reply of this set's.
+    reply_id_in_first_byte = False
     #: Time [s] between two health queries (``health_frames``, one motor each, in turn) while
     #: the tick commands torques; 0: none, the torque replies carry the error code already.
     health_interval = 0.0

@@ -95,6 +95,8 @@ class DamiaoProtocol(MitProtocol):
 
     name = 'damiao'
     config_section = 'damiao'
+    #: Byte 0 carries the status nibble above the ID (0x11: motor 1 enabled).
+    reply_id_in_first_byte = False
     config = DamiaoConfig
 
     def __init__(self, p_max: float = 12.5, v_max: float = 30.0, t_max: float = 10.0,

@@ -99,6 +99,7 @@ class MitProtocol(MotorProtocol):
 
     name = 'mit'
     config_section = 'mit'
+    reply_id_in_first_byte = True
 
     def __init__(self, p_min: float = -12.5, p_max: float = 12.5, v_min: float = -50.0,
                  v_max: float = 50.0, kp_max: float = 500.0, kd_max: float = 5.0,
