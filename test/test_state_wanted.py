@@ -77,6 +77,11 @@ class _Node:
     def get_logger(self):
         return self.logger
 
+    def get_clock(self):
+        # The ROS clock the tick's times are taken to (state_publisher._tick_stamp).
+        return types.SimpleNamespace(
+            now=lambda: types.SimpleNamespace(nanoseconds=time.time_ns()))
+
     def create_publisher(self, msg_type, topic, qos, event_callbacks=None):
         if self.unsupported and event_callbacks.matched is not None:
             from rclpy.event_handler import UnsupportedEventTypeError
@@ -97,7 +102,7 @@ def test_the_publisher_counts_subscriptions_and_publishes_only_to_them():
     pub.report_wanted()
     assert wanted == [0]   # nobody subscribes yet
     joints = [0.0] * 3 * len(pub._joint_msg.name)
-    pub.publish(_frame(PUBLISH_STATE | PUBLISH_ODOM), joints, None)
+    pub.publish(_frame(PUBLISH_STATE | PUBLISH_ODOM), joints)
     assert all(p.published == [] for p in node.publishers.values())
 
     def matched(topic, count):
@@ -108,7 +113,7 @@ def test_the_publisher_counts_subscriptions_and_publishes_only_to_them():
     assert wanted == [0, PUBLISH_ODOM, PUBLISH_ODOM | PUBLISH_STATE]
     matched('odom', 1)           # no change: nothing sent
     assert len(wanted) == 3
-    pub.publish(_frame(PUBLISH_STATE | PUBLISH_ODOM), joints, None)
+    pub.publish(_frame(PUBLISH_STATE | PUBLISH_ODOM), joints)
     assert [len(node.publishers[t].published) for t in ('~/state', 'odom', 'joint_states')] \
         == [0, 1, 1]
     matched('odom', 0)
@@ -121,5 +126,5 @@ def test_without_matched_events_everything_is_published():
     pub = StatePublisher(node, BalanceConfig(), wanted.append)
     pub.report_wanted()
     assert wanted == [PUBLISH_STATE | PUBLISH_ODOM]
-    pub.publish(_frame(PUBLISH_STATE | PUBLISH_ODOM), (), None)
+    pub.publish(_frame(PUBLISH_STATE | PUBLISH_ODOM), ())
     assert [len(node.publishers[t].published) for t in ('~/state', 'odom')] == [1, 1]

@@ -153,12 +153,12 @@ def lifted_name(tilt_deg: float, driven: bool) -> str:
 def _recorded(ls) -> List[Tuple[float, int, object]]:
     """Return the list that gets (time [s], motor ID, the frame decoded) of each frame sent."""
     bus = []
-    handle = ls.motors.handle
+    replies = ls.motors.replies   # what Lockstep.tick hands every frame to
 
-    def record(frame):
+    def record(frame, bus_index=0):
         bus.append((ls.t, frame.arbitration_id, decode(frame.arbitration_id, frame.data)))
-        return handle(frame)
-    ls.motors.handle = record
+        return replies(frame, bus_index)
+    ls.motors.replies = record
     return bus
 
 
