@@ -18,7 +18,8 @@ import math
 from typing import List
 
 from .layout import HIP_TORQUE_LIMIT, LEG_JOINTS, WHEEL_TORQUE_LIMIT
-from ..core.motor_config import (DjiConfig, HIP_PROTOCOL_NAMES, MitLimits, PROTOCOL_NAMES)
+from ..core.motor_config import (DjiConfig, HIP_PROTOCOL_NAMES, MitLimits, PROTOCOL_NAMES,
+                                 sign_param)
 from ..core.protocols import (CybergearConfig, DamiaoConfig, LkConfig, MotorProtocol,
                               protocol_for)
 from ..core.protocols.emulation import TIMEOUT_ACTIONS
@@ -28,11 +29,6 @@ from ..core.schema import param, section
 RO = True
 #: Values of ``initial_pose`` (RobotSim.reset).
 INITIAL_POSES = ('folded', 'tail', 'pitch', 'stand')
-
-
-def _direction(default: int, description: str):
-    # An integer range -1..1 with step 2 admits exactly -1 and +1.
-    return param(default, description, -1, 1, read_only=RO, step=2)
 
 
 @dataclass(frozen=True)
@@ -80,9 +76,9 @@ class SimCanConfig:
                           % ' | '.join(PROTOCOL_NAMES), read_only=RO, choices=PROTOCOL_NAMES)
     left_motor_id: int = param(1, 'CAN ID of the left wheel motor', 1, 2047, read_only=RO)
     right_motor_id: int = param(2, 'CAN ID of the right wheel motor', 1, 2047, read_only=RO)
-    left_direction: int = _direction(1, '+1 when a positive torque of the left motor drives '
+    left_direction: int = sign_param(1, '+1 when a positive torque of the left motor drives '
                                      'the wheel forward, else -1')
-    right_direction: int = _direction(-1, '+1 when a positive torque of the right motor '
+    right_direction: int = sign_param(-1, '+1 when a positive torque of the right motor '
                                       'drives the wheel forward, else -1')
     master_id: int = param(0, 'MIT motors: the standard ID they reply on', 0, 2047,
                            read_only=RO)

@@ -50,18 +50,19 @@ from typing import Dict, Iterable, List, Mapping, Optional, Tuple
 
 from ..core.protocols.base import Frame
 from ..core.protocols.dji import CURRENT_CODE_MAX, CURRENT_MAX, DjiC620Protocol
+from ..core.protocols.emulation import EmulatedMotors
 # The MIT motor is its protocol's emulator (MitProtocol.make_emulator); here for the callers.
 from ..core.protocols.mit import MitMotorEmulator, MitProtocol, POWER_UP_WINDOW  # noqa: F401
 
 
-class MitMotorBank:
+class MitMotorBank(EmulatedMotors):
     """
     MIT motors without a simulator: each joint at an angle and speed the caller sets (still).
 
-    What the fault suite, the benchmark and the node tests put on their buses. ``handle``
-    answers a frame as the addressed motor's firmware does (a list: no reply or one);
-    ``torque`` is what a motor applies to its joint now. ids: CAN IDs; directions: {ID: +1 or
-    -1}, motor shaft relative to the joint (default +1); protocol and the other options are
+    What the fault suite, the benchmark and the node tests put on their buses: the protocols'
+    ``EmulatedMotors`` on MIT (the MIT motor answers only frames on its own ID), built as those
+    callers name it. ids: CAN IDs; directions: {ID: +1 or -1}, motor shaft relative to the joint
+    (default +1); protocol (default MitProtocol()) and the other options are
     MitMotorEmulator's, for every motor. ``silent``: IDs whose replies are lost (the motor
     still acts on the frames); fault flags of one motor (miswired, reply_id, errors) are on
     its emulator, ``motor(ID)``.
@@ -69,35 +70,8 @@ class MitMotorBank:
 
     def __init__(self, ids: Iterable[int], directions: Optional[Mapping[int, int]] = None,
                  protocol: Optional[MitProtocol] = None, **options):
-        directions = directions or {}
-        self.protocol = protocol if protocol is not None else MitProtocol()
-        self.emulators: Dict[int, MitMotorEmulator] = {
-            int(i): MitMotorEmulator(i, self.protocol, direction=directions.get(i, 1),
-                                     **options) for i in ids}
-        self.ids = tuple(self.emulators)
-        #: (q [rad], q_dot [rad/s]) of each motor's joint.
-        self.joints: Dict[int, Tuple[float, float]] = dict.fromkeys(self.ids, (0.0, 0.0))
-        self.silent = set()
-
-    def motor(self, motor_id: int) -> MitMotorEmulator:
-        """Return the emulator of the motor with CAN ID ``motor_id`` (KeyError if none)."""
-        return self.emulators[motor_id]
-
-    def handle(self, frame: Frame, now: float) -> List[Frame]:
-        """Act on a frame as the addressed motor does; return its reply ([] if none is sent)."""
-        e = self.emulators.get(frame.arbitration_id)
-        if e is None or frame.is_extended_id:
-            return []
-        q, q_dot = self.joints[e.motor_id]
-        reply = e.handle(frame, q, q_dot, now)
-        if reply is None or e.motor_id in self.silent:
-            return []
-        return [reply]
-
-    def torque(self, motor_id: int, now: float) -> float:
-        """Return the joint torque [N m] motor ``motor_id`` applies at time ``now`` [s]."""
-        q, q_dot = self.joints[motor_id]
-        return self.emulators[motor_id].torque(q, q_dot, now)
+        super().__init__(protocol if protocol is not None else MitProtocol(), ids, directions,
+                         **options)
 
 
 class DjiC620Emulator:
